@@ -1,0 +1,60 @@
+#!/usr/bin/env bash
+# Set up everything fdi_ros needs, from nothing, inside this checkout:
+#   .venv/                   project venv with the pinned ROS 2 Jazzy wheels and Python deps
+#   .venv (as ROS prefix)    the rosidl build of msg_defs/fdi_msgs installed into the venv root,
+#                            which the ROS wheels already use as their prefix ($VENV/lib, /share)
+#   fdi_ros                  installed editable into the venv (console script .venv/bin/fdi-ros)
+# Idempotent: each step is skipped when its stamp matches the hash of its inputs, so a second
+# run does no network work and takes about a second.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="$ROOT/.venv"
+BUILD="$ROOT/build"
+PY="${PYTHON:-python3}"
+mkdir -p "$BUILD"
+
+hash_of() { cat "$@" | sha256sum | cut -c1-16; }
+stamp_ok() { [ -f "$BUILD/$1.stamp" ] && [ "$(cat "$BUILD/$1.stamp")" = "$2" ]; }
+stamp_set() { echo "$2" > "$BUILD/$1.stamp"; }
+
+t0=$(date +%s)
+# 1. venv and pinned wheels ------------------------------------------------------------------
+h_deps=$(hash_of "$ROOT/requirements.txt" "$ROOT/constraints.txt")
+if ! stamp_ok deps "$h_deps" || [ ! -x "$VENV/bin/python" ]; then
+  echo "[setup] creating venv and installing pinned dependencies"
+  [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
+  "$VENV/bin/python" -m pip install -q --disable-pip-version-check -r "$ROOT/requirements.txt" \
+      -c "$ROOT/constraints.txt"
+  # Pitfall 1 (ROS_ENV.md): the wheels' CMake exports carry the build machine's paths.
+  "$VENV/bin/python" "$ROOT/scripts/fix_cmake_prefix.py" "$VENV"
+  rm -f "$BUILD/msgs.stamp"
+  stamp_set deps "$h_deps"
+fi
+
+# 2. rosidl build of msg_defs/fdi_msgs into the venv prefix -----------------------------------
+h_msgs=$(hash_of "$ROOT"/msg_defs/fdi_msgs/CMakeLists.txt "$ROOT"/msg_defs/fdi_msgs/package.xml \
+         "$ROOT"/msg_defs/fdi_msgs/msg/*.msg)
+if ! stamp_ok msgs "$h_msgs"; then
+  echo "[setup] building msg_defs/fdi_msgs with rosidl (cmake + make)"
+  rm -rf "$BUILD/fdi_msgs"
+  mkdir -p "$BUILD/fdi_msgs"
+  (
+    cd "$BUILD/fdi_msgs"
+    export AMENT_PREFIX_PATH="$VENV" CMAKE_PREFIX_PATH="$VENV" PATH="$VENV/bin:$PATH"
+    cmake -S "$ROOT/msg_defs/fdi_msgs" -B . -DCMAKE_INSTALL_PREFIX="$VENV" \
+          -DPython3_EXECUTABLE="$VENV/bin/python" -DBUILD_TESTING=OFF \
+          -DCMAKE_BUILD_TYPE=Release > cmake.log 2>&1 || { cat cmake.log; exit 1; }
+    make -j2 install > make.log 2>&1 || { tail -50 make.log; exit 1; }
+  )
+  stamp_set msgs "$h_msgs"
+fi
+
+# 3. fdi_ros itself (editable) -----------------------------------------------------------------
+h_pkg=$(hash_of "$ROOT/setup.py" "$ROOT/setup.cfg")
+if ! stamp_ok pkg "$h_pkg"; then
+  echo "[setup] installing fdi_ros (editable)"
+  "$VENV/bin/python" -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation \
+      -e "$ROOT"
+  stamp_set pkg "$h_pkg"
+fi
+echo "[setup] ready in $(( $(date +%s) - t0 )) s: $VENV/bin/fdi-ros"

@@ -1,0 +1,238 @@
+"""The fdi_msgs message definitions, for bags without ROS and for live topics.
+
+One source of truth: the ``.msg`` files of ``msg_defs/fdi_msgs/msg`` are (a) built by rosidl for
+rclpy and (b) registered here into a rosbags typestore, so a bag written live (serialized CDR
+from rclpy) and a bag written offline (rosbags) are the same bytes.
+
+This module also converts between the core's records (:mod:`fdi_ros.core.types`) and message
+objects. The conversion works on *any* object with the message's attribute names, so the same
+functions serve rosbags' dataclasses and rclpy's generated classes: pass the class to build.
+"""
+
+from __future__ import annotations
+
+import array
+import math
+import os
+import sys
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from fdi_ros.core.types import Diagnosis, FaultEvent, FeatureVector, ResidualVector, SampleBlock
+
+PACKAGE = "fdi_msgs"
+MESSAGES = ("SensorBlock", "Features", "Residuals", "Symptoms", "Diagnosis", "FaultEvent")
+
+# Topic -> message type of the graph. One table, used by nodes, recorder, replayer and bag tools.
+TOPICS: dict[str, str] = {
+    "/fdi/sensor_block": f"{PACKAGE}/msg/SensorBlock",
+    "/fdi/features": f"{PACKAGE}/msg/Features",
+    "/fdi/residuals": f"{PACKAGE}/msg/Residuals",
+    "/fdi/symptoms": f"{PACKAGE}/msg/Symptoms",
+    "/fdi/diagnosis": f"{PACKAGE}/msg/Diagnosis",
+    "/fdi/fault_inject": f"{PACKAGE}/msg/FaultEvent",
+    "/fdi/fault_truth": f"{PACKAGE}/msg/FaultEvent",
+}
+
+
+def msg_dir() -> Path:
+    """Directory holding the ``.msg`` files: the checkout's msg_defs, else an installed prefix."""
+    here = Path(__file__).resolve().parents[1] / "msg_defs" / PACKAGE / "msg"
+    if here.is_dir():
+        return here
+    prefixes = os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) + [sys.prefix]
+    for prefix in prefixes:
+        cand = Path(prefix) / "share" / PACKAGE / "msg"
+        if prefix and cand.is_dir():
+            return cand
+    raise FileNotFoundError(
+        f"cannot find the {PACKAGE} .msg files (looked in msg_defs/ and share/{PACKAGE}/msg "
+        "under AMENT_PREFIX_PATH and the Python prefix)")
+
+
+def msg_definitions() -> dict[str, str]:
+    """Message type name -> ``.msg`` text, for every fdi_msgs message."""
+    d = msg_dir()
+    return {f"{PACKAGE}/msg/{name}": (d / f"{name}.msg").read_text() for name in MESSAGES}
+
+
+@lru_cache(maxsize=1)
+def typestore():
+    """A rosbags typestore for ROS 2 Jazzy with the fdi_msgs messages registered."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    types: dict = {}
+    for name, text in msg_definitions().items():
+        types.update(get_types_from_msg(text, name))
+    store.register(types)
+    return store
+
+
+# -- time ---------------------------------------------------------------------------------------
+
+def stamp_fields(t_s: float) -> tuple[int, int]:
+    """Seconds -> (sec, nanosec) of a builtin_interfaces/Time (non-negative times only)."""
+    if not math.isfinite(t_s) or t_s < 0:
+        raise ValueError(f"a message stamp needs a finite time >= 0 s, got {t_s}")
+    ns = int(round(t_s * 1e9))
+    return ns // 1_000_000_000, ns % 1_000_000_000
+
+
+def stamp_seconds(header: Any) -> float:
+    return header.stamp.sec + header.stamp.nanosec * 1e-9
+
+
+# -- array helpers that suit both rclpy (array.array) and rosbags (numpy) ---------------------
+
+def _f64(values: Any, rclpy_style: bool) -> Any:
+    arr = np.ascontiguousarray(values, dtype=np.float64).ravel()
+    return array.array("d", arr.tobytes()) if rclpy_style else arr
+
+
+def _i8(values: Any, rclpy_style: bool) -> Any:
+    arr = np.ascontiguousarray(values, dtype=np.int8).ravel()
+    return array.array("b", arr.tobytes()) if rclpy_style else arr
+
+
+def _np(values: Any, dtype: type = np.float64) -> np.ndarray:
+    if isinstance(values, np.ndarray):
+        return values.astype(dtype, copy=False)
+    return np.asarray(values, dtype=dtype)
+
+
+class MessageFactory:
+    """Builds message objects of one flavour: rosbags typestore classes or rclpy classes.
+
+    Parameters
+    ----------
+    flavour : "rosbags" (offline bags) or "rclpy" (live topics; needs the built fdi_msgs).
+    """
+
+    def __init__(self, flavour: str = "rosbags") -> None:
+        if flavour not in ("rosbags", "rclpy"):
+            raise ValueError(f"flavour must be 'rosbags' or 'rclpy', not {flavour!r}")
+        self.flavour = flavour
+        self.rclpy_style = flavour == "rclpy"
+        if self.rclpy_style:
+            import importlib
+
+            from builtin_interfaces.msg import Time
+            from std_msgs.msg import Header
+
+            mod = importlib.import_module(f"{PACKAGE}.msg")
+            self._cls: Callable[[str], Any] = lambda name: getattr(mod, name)
+            self._header, self._time = Header, Time
+        else:
+            store = typestore()
+            self._cls = lambda name: store.types[f"{PACKAGE}/msg/{name}"]
+            self._header = store.types["std_msgs/msg/Header"]
+            self._time = store.types["builtin_interfaces/msg/Time"]
+
+    def cls(self, name: str) -> Any:
+        return self._cls(name)
+
+    def header(self, t_s: float, frame_id: str = "") -> Any:
+        sec, nsec = stamp_fields(max(t_s, 0.0))
+        return self._header(stamp=self._time(sec=sec, nanosec=nsec), frame_id=frame_id)
+
+    # core record -> message ------------------------------------------------------------------
+    def sensor_block(self, b: SampleBlock) -> Any:
+        t0 = float(b.t[0]) if b.t.size else 0.0
+        return self.cls("SensorBlock")(
+            header=self.header(t0), plant=b.plant, block_index=int(b.index),
+            stamp_s=_f64(b.t, self.rclpy_style), crank_angle_deg=_f64(b.alpha, self.rclpy_style),
+            channels=list(b.channels), units=list(b.units),
+            values=_f64(b.values, self.rclpy_style))
+
+    def features(self, f: FeatureVector) -> Any:
+        return self.cls("Features")(
+            header=self.header(f.t_end), plant=f.plant, index=int(f.index),
+            t_start_s=float(f.t_start), t_end_s=float(f.t_end),
+            crank_angle_start_deg=float(f.alpha_start), valid=bool(f.valid), status=f.status,
+            names=list(f.names), units=list(f.units), values=_f64(f.values, self.rclpy_style))
+
+    def residuals(self, r: ResidualVector) -> Any:
+        return self.cls("Residuals")(
+            header=self.header(r.t), model_id=r.model_id, index=int(r.index), t_s=float(r.t),
+            valid=bool(r.valid), status=r.status, names=list(r.names), units=list(r.units),
+            values=_f64(r.values, self.rclpy_style), norm=float(r.norm))
+
+    def symptoms(self, *, index: int, t: float, valid: bool, status: str, names: Any,
+                 levels: Any, residuals: Any, threshold_low: Any, threshold_high: Any,
+                 threshold_intense: Any) -> Any:
+        s = self.rclpy_style
+        return self.cls("Symptoms")(
+            header=self.header(t), index=int(index), t_s=float(t), valid=bool(valid),
+            status=status, names=list(names), levels=_i8(levels, s),
+            residuals=_f64(residuals, s), threshold_low=_f64(threshold_low, s),
+            threshold_high=_f64(threshold_high, s), threshold_intense=_f64(threshold_intense, s))
+
+    def diagnosis(self, d: Diagnosis) -> Any:
+        return self.cls("Diagnosis")(
+            header=self.header(d.t), index=int(d.index), t_s=float(d.t), state=d.state,
+            min_residual_index=int(d.min_residual_index), min_residual_model=d.min_residual_model,
+            fault_index=int(d.fault_index), fault_model=d.fault_model,
+            candidate_faults=list(d.candidate_faults), isolated_faults=list(d.isolated_faults),
+            models_online=list(d.models_online), detection_time_s=float(d.detection_time),
+            isolation_time_s=float(d.isolation_time))
+
+    def fault_event(self, e: FaultEvent) -> Any:
+        return self.cls("FaultEvent")(
+            header=self.header(e.t), t_s=float(e.t), fault=e.fault, size=float(e.size),
+            size_unit=e.size_unit, profile=e.profile, ramp_s=float(e.ramp_s),
+            active=bool(e.active))
+
+
+# message (either flavour) -> core record -------------------------------------------------------
+
+def to_sample_block(m: Any) -> SampleBlock:
+    t = _np(m.stamp_s)
+    channels = tuple(m.channels)
+    values = _np(m.values)
+    n = t.shape[0]
+    if values.size != len(channels) * n:
+        raise ValueError(f"SensorBlock {m.block_index}: {values.size} values for "
+                         f"{len(channels)} channels x {n} samples")
+    return SampleBlock(plant=m.plant, index=int(m.block_index), t=t, alpha=_np(m.crank_angle_deg),
+                       channels=channels, units=tuple(m.units),
+                       values=values.reshape(len(channels), n))
+
+
+def to_features(m: Any) -> FeatureVector:
+    return FeatureVector(plant=m.plant, index=int(m.index), t_start=float(m.t_start_s),
+                         t_end=float(m.t_end_s), alpha_start=float(m.crank_angle_start_deg),
+                         valid=bool(m.valid), status=m.status, names=tuple(m.names),
+                         units=tuple(m.units), values=_np(m.values))
+
+
+def to_residuals(m: Any) -> ResidualVector:
+    return ResidualVector(model_id=m.model_id, index=int(m.index), t=float(m.t_s),
+                          valid=bool(m.valid), status=m.status, names=tuple(m.names),
+                          units=tuple(m.units), values=_np(m.values), norm=float(m.norm))
+
+
+def to_diagnosis(m: Any) -> Diagnosis:
+    return Diagnosis(index=int(m.index), t=float(m.t_s), state=m.state,
+                     min_residual_index=int(m.min_residual_index),
+                     min_residual_model=m.min_residual_model, fault_index=int(m.fault_index),
+                     fault_model=m.fault_model, candidate_faults=tuple(m.candidate_faults),
+                     isolated_faults=tuple(m.isolated_faults),
+                     models_online=tuple(m.models_online),
+                     detection_time=float(m.detection_time_s),
+                     isolation_time=float(m.isolation_time_s))
+
+
+def to_fault_event(m: Any) -> FaultEvent:
+    return FaultEvent(t=float(m.t_s), fault=m.fault, size=float(m.size), size_unit=m.size_unit,
+                      profile=m.profile or "step", ramp_s=float(m.ramp_s), active=bool(m.active))
+
+
+def symptoms_dict(m: Any) -> dict:
+    """A Symptoms message as plain Python (for JSON output and tests)."""
+    return {"index": int(m.index), "t": float(m.t_s), "valid": bool(m.valid),
+            "status": m.status, "levels": dict(zip(m.names, (int(v) for v in m.levels))),
+            "residuals": dict(zip(m.names, (float(v) for v in m.residuals)))}

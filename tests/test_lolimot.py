@@ -1,0 +1,130 @@
+"""LOLIMOT oracles: one model == least squares, a known break is found, smooth blending,
+the contract (shape, determinism, bad input, save/load) and the identified region."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fdi_ros.core.lolimot import Lolimot
+
+
+def _piecewise(X):
+    # Break at x1 = 0.5 with slopes +2 and -2 along x1, plus 0.3 x0 everywhere.
+    x0, x1 = X[:, 0], X[:, 1]
+    return np.where(x1 < 0.5, 1.0 + 2.0 * x1, 2.0 - 2.0 * (x1 - 0.5)) + 0.3 * x0
+
+
+@pytest.fixture()
+def grid_data():
+    rng = np.random.default_rng(1)
+    return rng.uniform(0.0, 1.0, size=(3000, 2))
+
+
+def test_one_model_equals_global_least_squares():
+    rng = np.random.default_rng(0)
+    X = rng.uniform([800.0, 1.0], [4500.0, 3.0], size=(500, 2))
+    y = 0.2 + 1e-4 * X[:, 0] - 0.05 * X[:, 1] + 0.01 * rng.standard_normal(500)
+    model = Lolimot(max_models=1, ridge=0.0)
+    res = model.fit(X, y)
+    assert res.n_models == 1 and res.success
+    A = np.column_stack([np.ones(500), X])
+    coef = np.linalg.lstsq(A, y, rcond=None)[0]
+    np.testing.assert_allclose(model.predict(X), A @ coef, rtol=0, atol=1e-9)
+    offset, slopes = model.local_parameters()
+    np.testing.assert_allclose(slopes[0], coef[1:], rtol=1e-6)
+    np.testing.assert_allclose(offset[0], coef[0] + model.centres[0] @ coef[1:], rtol=1e-9)
+
+
+def test_piecewise_linear_break_and_slopes_recovered(grid_data):
+    X = grid_data
+    # Narrow validity functions: nearly crisp cells, so the local slopes are the true ones.
+    model = Lolimot(max_models=2, k_sigma=0.08, ridge=0.0)
+    res = model.fit(X, _piecewise(X))
+    assert res.splits == ((0, 1),)  # the only split is along x1, the input with the break
+    lo, hi = model.cell_bounds
+    # The split sits at the break (the bounding box is within 1e-3 of [0, 1]).
+    assert abs(sorted(hi[:, 1])[0] - 0.5) < 2e-3
+    _, slopes = model.local_parameters()
+    order = np.argsort(model.centres[:, 1])
+    np.testing.assert_allclose(slopes[order, 1], [2.0, -2.0], rtol=0.02)
+    np.testing.assert_allclose(slopes[:, 0], [0.3, 0.3], rtol=0.02)
+    rng = np.random.default_rng(5)
+    Xt = rng.uniform(0, 1, (500, 2))
+    far = np.abs(Xt[:, 1] - 0.5) > 0.1
+    np.testing.assert_allclose(model.predict(Xt[far]), _piecewise(Xt[far]), atol=5e-3)
+
+
+def test_more_models_reduce_error_and_validation_selects(grid_data):
+    rng = np.random.default_rng(2)
+    f = lambda X: np.sin(3 * X[:, 0]) * np.exp(X[:, 1])  # noqa: E731
+    X = grid_data
+    y = f(X) + 0.02 * rng.standard_normal(X.shape[0])
+    Xv = rng.uniform(0, 1, (800, 2))
+    res = Lolimot(max_models=25).fit(X, y, X_val=Xv, y_val=f(Xv) + 0.02 * rng.standard_normal(800))
+    assert res.loss[0] > 5 * res.loss[-1]
+    assert res.n_models == int(np.argmin(res.criterion)) + 1
+    assert res.val_rmse < 0.03
+    res_aic = Lolimot(max_models=25).fit(X, y)
+    assert res_aic.criterion_name == "aicc" and res_aic.n_models > 5
+
+
+def test_smooth_across_cell_borders(grid_data):
+    X = grid_data
+    model = Lolimot(max_models=6)
+    model.fit(X, _piecewise(X) ** 2)
+    lo, hi = model.cell_bounds
+    # Walk across every interior border along x1 and x0: no jumps, bounded derivative.
+    for d in (0, 1):
+        for b in np.unique(np.concatenate([lo[:, d], hi[:, d]])):
+            if b <= 0.01 or b >= 0.99:
+                continue
+            t = np.linspace(b - 1e-3, b + 1e-3, 41)
+            P = np.full((41, 2), 0.37)
+            P[:, d] = t
+            yy = model.predict(P)
+            steps = np.abs(np.diff(yy))
+            assert steps.max() < 5 * np.median(steps) + 1e-9
+    phi = model.validity(X)
+    np.testing.assert_allclose(phi.sum(axis=1), 1.0)
+
+
+def test_contract_determinism_save_load_bad_input(tmp_path, grid_data):
+    X = grid_data
+    y = _piecewise(X)
+    a = Lolimot(max_models=5)
+    b = Lolimot(max_models=5)
+    a.fit(X, y, input_names=("n", "rho2"), output_name="eta_v")
+    b.fit(X, y, input_names=("n", "rho2"), output_name="eta_v")
+    Xt = np.random.default_rng(3).uniform(-0.2, 1.2, (100, 2))
+    assert a.predict(Xt).shape == (100,)
+    np.testing.assert_array_equal(a.predict(Xt), b.predict(Xt))
+    path = a.save(tmp_path / "m.npz")
+    c = Lolimot.load(path)
+    np.testing.assert_array_equal(a.predict(Xt), c.predict(Xt))
+    np.testing.assert_array_equal(a.in_region(Xt), c.in_region(Xt))
+    assert c.input_names == ("n", "rho2") and c.output_name == "eta_v"
+    assert np.isnan(a.predict(np.array([[np.nan, 0.5]])))[0]
+    with pytest.raises(ValueError):
+        a.predict(np.zeros((3, 3)))
+    with pytest.raises(ValueError):
+        Lolimot().fit(X, np.where(np.arange(X.shape[0]) == 3, np.nan, y))
+    with pytest.raises(ValueError):
+        Lolimot(k_sigma=5.0)
+    with pytest.raises(RuntimeError):
+        Lolimot().predict(X)
+    with pytest.raises(FileNotFoundError):
+        Lolimot.load(tmp_path / "missing.npz")
+    (tmp_path / "bad.npz").write_bytes(b"junk")
+    with pytest.raises(ValueError):
+        Lolimot.load(tmp_path / "bad.npz")
+
+
+def test_in_region_marks_the_empty_corner():
+    rng = np.random.default_rng(4)
+    X = rng.uniform(0, 1, (4000, 2))
+    X = X[~((X[:, 0] < 0.4) & (X[:, 1] > 0.6))]  # "low speed with high boost" left empty
+    model = Lolimot(max_models=3)
+    model.fit(X, X[:, 0] + X[:, 1])
+    inside = model.in_region(np.array([[0.7, 0.7], [0.2, 0.2], [0.1, 0.9], [1.5, 0.5]]))
+    assert inside.tolist() == [True, True, False, False]

@@ -1,0 +1,182 @@
+"""ECU look-up tables sampled from an identified model.
+
+A table holds the model's values at the nodes of a user grid (one strictly increasing
+breakpoint vector per input) and is evaluated the way an engine ECU evaluates its maps:
+multilinear interpolation between the 2**p surrounding nodes (bilinear for two inputs), inputs
+clamped to the outermost breakpoints. Each node also carries an "identified" flag (from the
+model's coverage of its training data); a query is valid when the interpolated flag is at least
+one half and the query lies within the breakpoint range. Outside, the clamped value is still
+returned, flagged invalid, so that a caller can say "not valid here" instead of trusting it.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["LookupTable", "table_error"]
+
+
+@dataclass(frozen=True)
+class LookupTable:
+    """A p-dimensional map on a rectilinear grid.
+
+    Attributes
+    ----------
+    breakpoints : one strictly increasing vector per input, in input units.
+    values : table values, shape ``tuple(len(b) for b in breakpoints)``.
+    identified : boolean flags of the same shape (True: node inside the identified region).
+    input_names, output_name : names for inspection and plots.
+    """
+
+    breakpoints: tuple[np.ndarray, ...]
+    values: np.ndarray
+    identified: np.ndarray
+    input_names: tuple[str, ...] = ()
+    output_name: str = "y"
+
+    def __post_init__(self) -> None:
+        bps = tuple(np.asarray(b, dtype=float) for b in self.breakpoints)
+        object.__setattr__(self, "breakpoints", bps)
+        shape = tuple(b.size for b in bps)
+        for d, b in enumerate(bps):
+            if b.ndim != 1 or b.size < 2:
+                raise ValueError(f"breakpoints of input {d} need at least two entries")
+            if not np.all(np.isfinite(b)) or np.any(np.diff(b) <= 0):
+                raise ValueError(f"breakpoints of input {d} must be finite, strictly increasing")
+        vals = np.asarray(self.values, dtype=float)
+        ident = np.asarray(self.identified, dtype=bool)
+        if vals.shape != shape or ident.shape != shape:
+            raise ValueError(f"values {vals.shape} and identified {ident.shape} must be {shape}")
+        # Unidentified nodes may hold NaN (nothing to sample); replace for interpolation.
+        if np.any(~np.isfinite(vals) & ident):
+            raise ValueError("identified table nodes must hold finite values")
+        object.__setattr__(self, "values", np.where(np.isfinite(vals), vals, 0.0))
+        object.__setattr__(self, "identified", ident)
+        if self.input_names and len(self.input_names) != len(bps):
+            raise ValueError("one input name per breakpoint vector is required")
+
+    @classmethod
+    def from_model(cls, model: Callable[[np.ndarray], np.ndarray],
+                   breakpoints: Sequence[Sequence[float]], *,
+                   region: Callable[[np.ndarray], np.ndarray] | None = None,
+                   input_names: tuple[str, ...] = (), output_name: str = "y") -> LookupTable:
+        """Sample ``model`` (a vectorised callable of (N, p) inputs) on the grid.
+
+        ``region`` (e.g. :meth:`Lolimot.in_region`) flags the identified nodes; without it all
+        nodes count as identified.
+        """
+        bps = tuple(np.asarray(b, dtype=float) for b in breakpoints)
+        mesh = np.meshgrid(*bps, indexing="ij")
+        pts = np.column_stack([m.ravel() for m in mesh])
+        vals = np.asarray(model(pts), dtype=float).reshape(mesh[0].shape)
+        ident = (np.ones(vals.shape, dtype=bool) if region is None
+                 else np.asarray(region(pts), dtype=bool).reshape(vals.shape))
+        return cls(breakpoints=bps, values=vals, identified=ident & np.isfinite(vals),
+                   input_names=tuple(input_names), output_name=output_name)
+
+    @property
+    def n_inputs(self) -> int:
+        return len(self.breakpoints)
+
+    def _corners(self, X):
+        """Lower node index and fractional position per input, after clamping."""
+        X = np.asarray(X, dtype=float)
+        if X.ndim == 1:
+            X = X[None, :]
+        if X.ndim != 2 or X.shape[1] != self.n_inputs:
+            raise ValueError(f"expected (N, {self.n_inputs}) inputs, got shape {X.shape}")
+        idx, frac = [], []
+        inside = np.all(np.isfinite(X), axis=1)
+        for d, b in enumerate(self.breakpoints):
+            x = np.nan_to_num(X[:, d], nan=b[0])
+            inside &= (x >= b[0]) & (x <= b[-1])
+            xc = np.clip(x, b[0], b[-1])
+            i = np.clip(np.searchsorted(b, xc, side="right") - 1, 0, b.size - 2)
+            idx.append(i)
+            frac.append((xc - b[i]) / (b[i + 1] - b[i]))
+        return idx, frac, inside, np.all(np.isfinite(X), axis=1)
+
+    def _interp(self, table, idx, frac) -> np.ndarray:
+        out = np.zeros(idx[0].shape[0])
+        for corner in range(2 ** self.n_inputs):
+            w = np.ones_like(out)
+            node = []
+            for d in range(self.n_inputs):
+                up = (corner >> d) & 1
+                w = w * (frac[d] if up else 1.0 - frac[d])
+                node.append(idx[d] + up)
+            out += w * table[tuple(node)]
+        return out
+
+    def __call__(self, X) -> np.ndarray:
+        """Interpolated values at (N, p) inputs (clamped at the edges; NaN rows give NaN)."""
+        idx, frac, _, finite = self._corners(X)
+        out = self._interp(self.values, idx, frac)
+        out[~finite] = np.nan
+        return out
+
+    def evaluate(self, X) -> tuple[np.ndarray, np.ndarray]:
+        """Values and validity flags: valid = within the breakpoints and the interpolated
+        identified flag >= 0.5."""
+        idx, frac, inside, finite = self._corners(X)
+        vals = self._interp(self.values, idx, frac)
+        vals[~finite] = np.nan
+        valid = inside & (self._interp(self.identified.astype(float), idx, frac) >= 0.5)
+        return vals, valid
+
+    # ------------------------------------------------------------------ persistence
+    def to_dict(self) -> dict:
+        """JSON-ready representation (the form an ECU calibration tool would import)."""
+        return {"input_names": list(self.input_names), "output_name": self.output_name,
+                "breakpoints": [b.tolist() for b in self.breakpoints],
+                "values": self.values.tolist(), "identified": self.identified.tolist()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> LookupTable:
+        try:
+            return cls(breakpoints=tuple(np.asarray(b, dtype=float) for b in d["breakpoints"]),
+                       values=np.asarray(d["values"], dtype=float),
+                       identified=np.asarray(d["identified"], dtype=bool),
+                       input_names=tuple(d.get("input_names", ())),
+                       output_name=d.get("output_name", "y"))
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"not a look-up table: {exc}") from exc
+
+    def save(self, path) -> Path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.to_dict()))
+        return path
+
+    @classmethod
+    def load(cls, path) -> LookupTable:
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"no look-up table at {path}")
+        try:
+            d = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: not JSON: {exc}") from exc
+        return cls.from_dict(d)
+
+
+def table_error(model: Callable[[np.ndarray], np.ndarray], table: LookupTable, X) -> dict:
+    """Table-versus-model error on points X (only where the table is valid).
+
+    Returns
+    -------
+    dict with ``rmse``, ``max_abs`` (output units), ``n_points`` used and ``nodes``.
+    """
+    X = np.asarray(X, dtype=float)
+    vals, valid = table.evaluate(X)
+    if not valid.any():
+        return {"rmse": float("nan"), "max_abs": float("nan"), "n_points": 0,
+                "nodes": int(table.values.size)}
+    e = vals[valid] - np.asarray(model(X[valid]), dtype=float)
+    return {"rmse": float(np.sqrt(np.mean(e ** 2))), "max_abs": float(np.abs(e).max()),
+            "n_points": int(valid.sum()), "nodes": int(table.values.size)}

@@ -1,0 +1,97 @@
+"""Recorder: every fdi topic (and /diagnostics) into a rosbag2 MCAP bag, serialized as received.
+
+Subscriptions are ``raw=True``: the CDR bytes go to the bag unchanged (no re-encoding).
+A SIGINT or SIGTERM closes the bag properly (MCAP footer and metadata.yaml), so an interrupted
+recording is a complete, readable bag. Topics that appear later are picked up by a periodic
+scan of the graph, for the message types this package knows.
+
+Parameters: ``bag`` (output directory, required), ``topics`` (extra topics; default: all known),
+``scan_period_s`` (graph scan, 0.5 s).
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+from rclpy.node import Node
+
+from fdi_ros import msgs
+from fdi_ros.bag import BagWriter
+from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, run_node
+
+# Known types we can record; topics carrying them are picked up wherever they appear.
+RECORDABLE = {**msgs.TOPICS, "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
+              "/clock": "rosgraph_msgs/msg/Clock"}
+
+
+def _msg_class(msgtype: str) -> Any:
+    import importlib
+
+    pkg, _, name = msgtype.split("/")
+    return getattr(importlib.import_module(f"{pkg}.msg"), name)
+
+
+class RecorderNode(Node):
+    def __init__(self) -> None:
+        super().__init__("fdi_recorder")
+        self.declare_parameter("bag", "")
+        self.declare_parameter("topics", [""])
+        self.declare_parameter("scan_period_s", 0.5)
+        path = self.get_parameter("bag").value
+        if not path:
+            raise ValueError("parameter 'bag' (output bag directory) is required")
+        extra = [t for t in self.get_parameter("topics").value if t]
+        self._lock = threading.Lock()
+        self._writer: BagWriter | None = BagWriter(path)
+        self._subs: dict[str, Any] = {}
+        self._wanted = dict(RECORDABLE)
+        for t in extra:
+            if t not in self._wanted:
+                self.get_logger().warn(f"topic {t}: type unknown until it appears in the graph")
+        self._extra = set(extra)
+        for topic, typ in msgs.TOPICS.items():
+            self._subscribe(topic, typ)
+        self._subscribe("/diagnostics", RECORDABLE["/diagnostics"])
+        self.create_timer(float(self.get_parameter("scan_period_s").value), self._scan)
+        self.get_logger().info(f"recording to {path}")
+
+    def _subscribe(self, topic: str, msgtype: str) -> None:
+        if topic in self._subs:
+            return
+        qos = LATCHED_QOS if topic.startswith("/fdi/fault_") else DATA_QOS
+        cls = _msg_class(msgtype)
+        self._subs[topic] = self.create_subscription(
+            cls, topic, lambda data, t=topic, m=msgtype: self._on_msg(t, m, data), qos, raw=True)
+
+    def _scan(self) -> None:
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self._subs:
+                continue
+            for typ in types:
+                if topic in self._extra or typ.startswith(f"{msgs.PACKAGE}/"):
+                    self._subscribe(topic, typ)
+                    self.get_logger().info(f"recording new topic {topic} [{typ}]")
+                    break
+
+    def _on_msg(self, topic: str, msgtype: str, data: bytes) -> None:
+        t_ns = self.get_clock().now().nanoseconds
+        with self._lock:
+            if self._writer is not None:
+                self._writer.write_raw(topic, msgtype, data, t_ns)
+
+    def close(self) -> None:
+        with self._lock:
+            if self._writer is not None:
+                n = self._writer.count
+                self._writer.close()
+                self._writer = None
+                print(f"[fdi_recorder] bag closed with {n} messages", flush=True)
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(RecorderNode, on_shutdown=lambda n: n.close(), args=args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

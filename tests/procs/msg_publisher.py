@@ -1,0 +1,30 @@
+"""A child process that publishes one fully populated fdi_msgs message of each type, repeatedly
+(every 0.1 s) until stopped, so the receiving test can match fields one by one."""
+
+import rclpy
+from rclpy.node import Node
+
+from fdi_ros.msgs import TOPICS, MessageFactory
+from fdi_ros.nodes.common import DATA_QOS
+from sample_messages import sample_records
+
+def main() -> None:
+    rclpy.init()
+    node = Node("msg_publisher")
+    fac = MessageFactory("rclpy")
+    pubs = {}
+    samples = sample_records(fac)
+    for topic, msg in samples.items():
+        pubs[topic] = node.create_publisher(type(msg), topic, DATA_QOS)
+    node.create_timer(0.1, lambda: [pubs[t].publish(m) for t, m in samples.items()])
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()

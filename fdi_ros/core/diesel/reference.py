@@ -1,0 +1,297 @@
+"""The five static reference models of the diesel intake system (Schwarte & Isermann 2002).
+
+Each model maps the operating point (engine speed ``n`` [rpm], boost density ``rho2``
+[kg/m^3]) to one characteristic value of a 180 deg CA segment (paper eqs. 3, 5, 6, 8, 9):
+
+=============  ==============================================  ==========
+output         meaning                                         unit
+=============  ==============================================  ==========
+``eta_v``      volumetric efficiency m_air / m_th              1
+``maf_amp``    first-harmonic amplitude of the MAF signal      kg/h
+``maf_phase``  phase of that harmonic                          deg CA
+``p2_amp``     first-harmonic amplitude of the boost pressure  Pa
+``p2_phase``   phase of that harmonic                          deg CA
+=============  ==============================================  ==========
+
+They are identified with LOLIMOT from fault-free identification-cycle features and then sampled
+into ECU look-up tables (:mod:`fdi_ros.core.lut`) on a user grid. Phases are periodic (one
+period is 180 deg CA); they are fitted on a branch of width 180 deg CA centred on the data's
+circular mean, and residuals are wrapped to +-90 deg CA.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from fdi_ros.core.lolimot import Lolimot, LolimotResult
+from fdi_ros.core.lut import LookupTable, table_error
+from fdi_ros.core.types import FeatureVector
+
+__all__ = ["INPUTS", "OUTPUTS", "UNITS", "IdentificationConfig", "IdentificationResult",
+           "ReferenceModelSet", "feature_table", "identify_reference_models", "nrmse",
+           "split_blocks", "wrap_phase"]
+
+INPUTS = ("n", "rho2")
+OUTPUTS = ("eta_v", "maf_amp", "maf_phase", "p2_amp", "p2_phase")
+UNITS = {"n": "rpm", "rho2": "kg/m^3", "eta_v": "1", "maf_amp": "kg/h", "maf_phase": "deg CA",
+         "p2_amp": "Pa", "p2_phase": "deg CA"}
+PHASES = ("maf_phase", "p2_phase")
+PERIOD_DEG = 180.0
+MANIFEST = "reference_models.json"
+
+
+def wrap_phase(x, centre=0.0):
+    """Wrap phases [deg CA] to ``(centre - 90, centre + 90]`` (period 180 deg CA)."""
+    x = np.asarray(x, dtype=float)
+    return centre - ((centre - x + 0.5 * PERIOD_DEG) % PERIOD_DEG) + 0.5 * PERIOD_DEG
+
+
+def circular_mean(x) -> float:
+    """Circular mean of phases [deg CA] with period 180 deg CA."""
+    a = 2.0 * np.pi * np.asarray(x, dtype=float) / PERIOD_DEG
+    return float(np.angle(np.mean(np.exp(1j * a))) * PERIOD_DEG / (2.0 * np.pi))
+
+
+def nrmse(y, yhat) -> float:
+    """Root-mean-square error divided by the standard deviation of y (0: perfect, 1: mean)."""
+    y = np.asarray(y, dtype=float)
+    e = y - np.asarray(yhat, dtype=float)
+    sd = float(np.std(y))
+    return float(np.sqrt(np.mean(e ** 2)) / sd) if sd > 0 else float("nan")
+
+
+def feature_table(features: Iterable[FeatureVector],
+                  names: tuple[str, ...] = INPUTS + OUTPUTS) -> dict[str, np.ndarray]:
+    """Stack feature vectors into arrays per name; invalid or non-finite segments dropped.
+
+    Also returns ``t`` (segment end time [s]) and ``index``.
+    """
+    rows, t, idx = [], [], []
+    for fv in features:
+        if not fv.valid:
+            continue
+        try:
+            row = [fv.get(k) for k in names]
+        except KeyError as exc:
+            raise ValueError(f"feature vectors lack a reference-model signal: {exc}") from None
+        if np.all(np.isfinite(row)):
+            rows.append(row)
+            t.append(fv.t_end)
+            idx.append(fv.index)
+    if not rows:
+        raise ValueError("no valid feature vectors with finite values")
+    arr = np.asarray(rows, dtype=float)
+    out = {k: arr[:, j] for j, k in enumerate(names)}
+    out["t"] = np.asarray(t)
+    out["index"] = np.asarray(idx)
+    return out
+
+
+def split_blocks(n_samples: int, *, block: int = 200, n_folds: int = 5, seed: int = 0):
+    """Contiguous-block split into train / validation / test index arrays (60/20/20 %).
+
+    Neighbouring segments are strongly correlated; whole blocks keep the held-out data honest.
+    """
+    n_blocks = max(1, int(np.ceil(n_samples / block)))
+    rng = np.random.default_rng(seed)
+    fold = np.resize(rng.permutation(n_folds), n_blocks)
+    rng.shuffle(fold)
+    per = np.repeat(fold, block)[:n_samples]
+    return (np.flatnonzero(per >= 2), np.flatnonzero(per == 1), np.flatnonzero(per == 0))
+
+
+@dataclass(frozen=True)
+class IdentificationConfig:
+    """Settings of the identification of the five models.
+
+    lut_n, lut_rho2 : ECU table breakpoints [rpm], [kg/m^3]; empty -> a 17 x 13 grid over the
+        identified range.
+    """
+
+    max_models: int = 14
+    k_sigma: float = 0.35
+    ridge: float = 1e-6
+    min_samples_per_model: int = 40
+    patience: int = 4
+    coverage_bins: int = 16
+    coverage_min_count: int = 3
+    block: int = 200
+    seed: int = 0
+    lut_n: tuple[float, ...] = ()
+    lut_rho2: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.block < 1:
+            raise ValueError("block must be >= 1")
+        for name in ("lut_n", "lut_rho2"):
+            bp = np.asarray(getattr(self, name), dtype=float)
+            if bp.size and (bp.size < 2 or np.any(np.diff(bp) <= 0)):
+                raise ValueError(f"{name} must be strictly increasing with >= 2 entries")
+
+    def lolimot(self) -> Lolimot:
+        return Lolimot(max_models=self.max_models, k_sigma=self.k_sigma, ridge=self.ridge,
+                       min_samples_per_model=self.min_samples_per_model,
+                       patience=self.patience, coverage_bins=self.coverage_bins,
+                       coverage_min_count=self.coverage_min_count)
+
+
+@dataclass
+class ReferenceModelSet:
+    """The five LOLIMOT models, their look-up tables and the phase branch centres.
+
+    ``predict`` evaluates the tables (as the ECU does) or the LOLIMOT models themselves.
+    """
+
+    models: dict[str, Lolimot]
+    tables: dict[str, LookupTable]
+    phase_centre: dict[str, float] = field(default_factory=dict)
+    info: dict = field(default_factory=dict)
+
+    @property
+    def outputs(self) -> tuple[str, ...]:
+        return tuple(k for k in OUTPUTS if k in self.models)
+
+    def in_region(self, n, rho2) -> np.ndarray:
+        """Identified region of the eta_v model's training data (all five share the data)."""
+        X = np.column_stack([np.atleast_1d(n), np.atleast_1d(rho2)]).astype(float)
+        return self.models[self.outputs[0]].in_region(X)
+
+    def predict(self, n, rho2, *, use_tables: bool = True
+                ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """Reference values at the operating points and a validity flag per point."""
+        X = np.column_stack([np.atleast_1d(n), np.atleast_1d(rho2)]).astype(float)
+        valid = self.models[self.outputs[0]].in_region(X)
+        out = {}
+        for k in self.outputs:
+            if use_tables and k in self.tables:
+                v, ok = self.tables[k].evaluate(X)
+                valid &= ok
+            else:
+                v = self.models[k].predict(X)
+            out[k] = v
+        return out, valid
+
+    def save(self, directory) -> Path:
+        """Write one ``<output>.npz`` model and ``<output>.lut.json`` table per output plus a
+        manifest ``reference_models.json``."""
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        for k, m in self.models.items():
+            m.save(d / f"{k}.npz")
+        for k, t in self.tables.items():
+            t.save(d / f"{k}.lut.json")
+        manifest = {"type": "diesel_reference", "inputs": list(INPUTS),
+                    "outputs": list(self.models), "tables": list(self.tables),
+                    "phase_centre": self.phase_centre, "info": self.info}
+        (d / MANIFEST).write_text(json.dumps(manifest, indent=1))
+        return d
+
+    @classmethod
+    def load(cls, directory) -> ReferenceModelSet:
+        d = Path(directory)
+        mf = d / MANIFEST
+        if not mf.exists():
+            raise FileNotFoundError(f"no reference model set in {d} (missing {MANIFEST}); "
+                                    "run `fdi-ros identify --plant diesel` first")
+        try:
+            manifest = json.loads(mf.read_text())
+            models = {k: Lolimot.load(d / f"{k}.npz") for k in manifest["outputs"]}
+            tables = {k: LookupTable.load(d / f"{k}.lut.json") for k in manifest["tables"]}
+        except (KeyError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{mf}: malformed manifest: {exc}") from exc
+        return cls(models=models, tables=tables,
+                   phase_centre={k: float(v) for k, v in manifest["phase_centre"].items()},
+                   info=manifest.get("info", {}))
+
+
+@dataclass(frozen=True)
+class IdentificationResult:
+    """Outcome of :func:`identify_reference_models`.
+
+    nrmse_test : held-out NRMSE per output (LOLIMOT); nrmse_test_lut : the same for the tables.
+    lut_error : table-vs-model RMSE on the test points per output.
+    """
+
+    models: ReferenceModelSet
+    results: dict[str, LolimotResult]
+    nrmse_train: dict[str, float]
+    nrmse_test: dict[str, float]
+    nrmse_test_lut: dict[str, float]
+    lut_error: dict[str, dict]
+    n_train: int
+    n_val: int
+    n_test: int
+    train_s: float
+    success: bool
+    message: str
+
+
+def _target(k: str, y: np.ndarray, centre: float | None) -> np.ndarray:
+    return wrap_phase(y, centre) if k in PHASES else y
+
+
+def identify_reference_models(data: Mapping[str, np.ndarray], *,
+                              config: IdentificationConfig | None = None,
+                              progress: bool = False) -> IdentificationResult:
+    """Identify the five models from feature arrays (see :func:`feature_table`).
+
+    The segments are split into contiguous train / validation / test blocks; the validation
+    blocks choose the number of local models, the test blocks give the reported NRMSE.
+    """
+    cfg = config or IdentificationConfig()
+    missing = [k for k in INPUTS + OUTPUTS if k not in data]
+    if missing:
+        raise ValueError(f"identification data lacks {missing}")
+    X = np.column_stack([np.asarray(data[k], dtype=float) for k in INPUTS])
+    finite = np.all(np.isfinite(X), axis=1)
+    for k in OUTPUTS:
+        finite &= np.isfinite(np.asarray(data[k], dtype=float))
+    X = X[finite]
+    if X.shape[0] < 10 * cfg.min_samples_per_model:
+        raise ValueError(f"only {X.shape[0]} usable segments: too few to identify the models")
+    tr, va, te = split_blocks(X.shape[0], block=cfg.block, seed=cfg.seed)
+    n_bp = np.asarray(cfg.lut_n, dtype=float)
+    r_bp = np.asarray(cfg.lut_rho2, dtype=float)
+    if n_bp.size == 0:
+        n_bp = np.linspace(X[:, 0].min(), X[:, 0].max(), 17)
+    if r_bp.size == 0:
+        r_bp = np.linspace(X[:, 1].min(), X[:, 1].max(), 13)
+    models, tables, results, centres = {}, {}, {}, {}
+    nr_tr, nr_te, nr_lut, lut_err = {}, {}, {}, {}
+    t0 = time.perf_counter()
+    outputs = OUTPUTS
+    if progress:
+        from tqdm import tqdm
+        outputs = tqdm(OUTPUTS, desc="reference models", unit="model")
+    for k in outputs:
+        y = np.asarray(data[k], dtype=float)[finite]
+        c = circular_mean(y[tr]) if k in PHASES else None
+        if c is not None:
+            centres[k] = c
+        y = _target(k, y, c)
+        m = cfg.lolimot()
+        res = m.fit(X[tr], y[tr], X_val=X[va], y_val=y[va], progress=progress,
+                    input_names=INPUTS, output_name=k)
+        models[k], results[k] = m, res
+        tables[k] = LookupTable.from_model(m.predict, (n_bp, r_bp), region=m.in_region,
+                                           input_names=INPUTS, output_name=k)
+        nr_tr[k] = nrmse(y[tr], m.predict(X[tr]))
+        nr_te[k] = nrmse(y[te], m.predict(X[te]))
+        nr_lut[k] = nrmse(y[te], tables[k](X[te]))
+        lut_err[k] = table_error(m.predict, tables[k], X[te])
+    train_s = time.perf_counter() - t0
+    info = {"nrmse_test": nr_te, "n_models": {k: r.n_models for k, r in results.items()},
+            "n_train": int(tr.size), "config": {k: (list(v) if isinstance(v, tuple) else v)
+                                                for k, v in asdict(cfg).items()}}
+    mset = ReferenceModelSet(models=models, tables=tables, phase_centre=centres, info=info)
+    return IdentificationResult(models=mset, results=results, nrmse_train=nr_tr,
+                                nrmse_test=nr_te, nrmse_test_lut=nr_lut, lut_error=lut_err,
+                                n_train=int(tr.size), n_val=int(va.size), n_test=int(te.size),
+                                train_s=train_s, success=all(r.success for r in results.values()),
+                                message="identified five reference models")

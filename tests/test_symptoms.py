@@ -1,0 +1,104 @@
+"""Symptoms: thresholds from fault-free statistics, debouncing, isolation by the table."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fdi_ros.core.diesel.symptoms import (PAPER_TABLE, RESIDUALS, SYMPTOMS, SymptomConfig,
+                                          SymptomGenerator, calibrate_thresholds, isolate,
+                                          load_fault_symptom_tables, moving_average)
+from fdi_ros.core.residual_models import load_residual_model, registered_types
+from fdi_ros.core.types import ResidualVector
+
+
+def _rv(i, values, valid=True):
+    return ResidualVector(model_id="nominal", index=i, t=0.015 * i, valid=valid,
+                          status="" if valid else "outside", names=RESIDUALS,
+                          units=("1",) * 5, values=np.asarray(values, float), norm=0.0)
+
+
+def test_moving_average_is_causal_mean():
+    R = np.arange(10.0)[:, None]
+    F = moving_average(R, 3)
+    np.testing.assert_allclose(F[:, 0], [0, 0.5, 1, 2, 3, 4, 5, 6, 7, 8])
+
+
+def test_thresholds_cover_fault_free_data_and_detect_a_step():
+    rng = np.random.default_rng(0)
+    sd = np.array([0.01, 2.0, 1.5, 80.0, 2.0])
+    R = rng.standard_normal((5000, 5)) * sd + np.array([0.002, 0, 0, 0, 0])
+    cfg = calibrate_thresholds(R, k_sigma=5.0, filter_len=4)
+    np.testing.assert_allclose(cfg.centre, [0.002, 0, 0, 0, 0], atol=0.1 * sd.max())
+    # The filtered std of white noise is sd / 2 for a 4-segment mean.
+    np.testing.assert_allclose(cfg.scale, sd / 2, rtol=0.1)
+    gen = SymptomGenerator(config=cfg)
+    fresh = rng.standard_normal((3000, 5)) * sd + cfg.centre
+    levels = np.array([gen.update(_rv(i, r)).levels for i, r in enumerate(fresh)])
+    assert not levels.any()  # no false symptom on fault-free data
+    # A step of -8 filtered sigmas in r_eta: "-" within filter + debounce segments.
+    step = np.zeros(5)
+    step[0] = -8 * cfg.scale[0]
+    states = [gen.update(_rv(3000 + i, cfg.centre + step)) for i in range(8)]
+    first = next(i for i, s in enumerate(states) if s.levels[0] != 0)
+    assert states[first].levels[0] == -1 and first + 1 <= cfg.filter_len + cfg.debounce_on
+    assert states[-1].as_table_order() == (-1, 0, 0, 0, 0)
+    assert states[-1].signature == "-,o,o,o,o"
+
+
+def test_debounce_rejects_a_single_spike_and_intense_level():
+    cfg = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(0.2,) * 5,
+                        filter_len=1, debounce_on=3, debounce_off=2)
+    gen = SymptomGenerator(config=cfg)
+    seq = [0, 5, 0, 0, 2, 2, 2, 2, 5, 5, 0, 0, 0]
+    lv = [gen.update(_rv(i, [v, 0, 0, 0, 0])).levels[0] for i, v in enumerate(seq)]
+    assert lv == [0, 0, 0, 0, 0, 0, 1, 1, 2, 2, 2, 0, 0]
+
+
+def test_invalid_residuals_give_no_symptom_and_restart():
+    cfg = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(0.2,) * 5,
+                        filter_len=1, debounce_on=1, debounce_off=1)
+    gen = SymptomGenerator(config=cfg)
+    assert gen.update(_rv(0, [3, 0, 0, 0, 0])).levels[0] == 1
+    s = gen.update(_rv(1, [3, 0, 0, 0, 0], valid=False))
+    assert not s.valid and s.levels == (0,) * 5 and s.status == "outside"
+    nan = gen.update(_rv(2, [np.nan, 0, 0, 0, 0]))
+    assert not nan.valid and nan.levels == (0,) * 5
+
+
+def test_isolation_by_the_paper_table():
+    assert isolate((-1, 0, 0, 0, 0), PAPER_TABLE) == ["leak_ic_engine"]
+    assert isolate((0, -1, -1, 0, 0), PAPER_TABLE) == ["swirl_flap_closed"]
+    assert isolate((2, -1, -1, 0, 0), PAPER_TABLE) == ["egr_stuck_open"]
+    assert isolate((1, -1, -1, 0, 0), PAPER_TABLE) == ["egr_stuck_open"]  # sign match
+    # The table cannot tell the open crank-case vent from the leaky EGR valve.
+    assert sorted(isolate((1, 0, 0, 0, 0), PAPER_TABLE)) == ["crankcase_vent_open", "egr_leaky"]
+    assert isolate((0, 0, 0, 0, 0), PAPER_TABLE) == []
+    assert isolate({"s_eta": -1}, PAPER_TABLE) == ["leak_ic_engine"]
+    with pytest.raises(ValueError):
+        isolate((1, 0), PAPER_TABLE)
+
+
+def test_fault_symptom_table_file(tmp_path):
+    p = tmp_path / "fst.yaml"
+    p.write_text("symptoms: [s_eta, s_Am, s_Ap, s_phim, s_php]\n"
+                 "tables:\n  paper:\n    leak_ic_engine: '-,o,o,o,o'\n"
+                 "    egr_stuck_open: [++, '-', '-', o, o]\n")
+    t = load_fault_symptom_tables(p)
+    assert t["paper"]["egr_stuck_open"] == (2, -1, -1, 0, 0)
+    p.write_text("tables:\n  x:\n    f: '+,?,o,o,o'\n")
+    with pytest.raises(ValueError):
+        load_fault_symptom_tables(p)
+    assert SYMPTOMS[0] == "s_eta"
+
+
+def test_registry_rejects_bad_specs(tmp_path):
+    assert "diesel_reference" in registered_types()
+    with pytest.raises(ValueError):
+        load_residual_model({"type": "no_such_kind"}, model_id="x")
+    with pytest.raises(ValueError):
+        load_residual_model({"path": "."}, model_id="x")
+    with pytest.raises(FileNotFoundError):
+        load_residual_model(tmp_path / "missing", model_id="x")
+    with pytest.raises(FileNotFoundError):
+        load_residual_model({"type": "diesel_reference", "path": str(tmp_path)}, model_id="n")

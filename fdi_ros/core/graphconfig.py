@@ -1,0 +1,104 @@
+"""The graph configuration file (``config/<plant>.yaml``): one file, read by everyone.
+
+It is a ROS 2 parameter file (one ``<node>: ros__parameters:`` section per node kind) plus one
+``fdi_graph:`` section that ROS parameters cannot express (the bank: a list of models with their
+fault sets and model specs). The launcher hands each node only its own section; the supervisor
+and offline tools read ``fdi_graph`` through :func:`load_graph_config`.
+
+``fdi_graph`` keys
+------------------
+plant : plant id ("diesel", "turbofan").
+bank : list of ``{id, faults: [fault ids], model: <spec for load_residual_model>}``; the
+    model with no faults is the nominal (reference) model.
+t0_s : isolation hold time T0 [s].
+symptoms : optional ``{model: <bank id whose residuals give symptoms>, config: {...}}``.
+stale_s : residuals older than this (plant time) count as missing [s].
+node_timeout_s : a lifecycle service that does not answer within this [s] marks the node failed.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from fdi_ros.core.supervisor import BankModel
+
+KNOWN_KEYS = {"plant", "bank", "t0_s", "symptoms", "stale_s", "node_timeout_s", "description"}
+
+
+@dataclass(frozen=True)
+class BankEntry:
+    id: str
+    faults: frozenset[str]
+    model: Any  # spec handed to load_residual_model
+
+    @property
+    def node_name(self) -> str:
+        return "fdi_model_" + "".join(c if c.isalnum() else "_" for c in self.id)
+
+
+@dataclass(frozen=True)
+class GraphConfig:
+    path: Path
+    plant: str
+    bank: tuple[BankEntry, ...]
+    t0_s: float
+    symptoms: dict | None = None
+    stale_s: float = math.inf
+    node_timeout_s: float = 2.0
+    node_params: dict[str, dict] = field(default_factory=dict)
+
+    @property
+    def bank_models(self) -> list[BankModel]:
+        return [BankModel(id=e.id, faults=e.faults) for e in self.bank]
+
+    def entry(self, model_id: str) -> BankEntry:
+        for e in self.bank:
+            if e.id == model_id:
+                return e
+        raise KeyError(f"no bank model {model_id!r} in {self.path}")
+
+    def resolve(self, value: str) -> str:
+        """A path relative to the repository root (the config's parent's parent) or absolute."""
+        p = Path(value)
+        if p.is_absolute() or p.exists():
+            return str(p)
+        return str(self.path.resolve().parent.parent / p)
+
+
+def load_graph_config(path: str | Path) -> GraphConfig:
+    """Read and validate a graph configuration file (clear errors for malformed files)."""
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"graph configuration {p} not found")
+    try:
+        doc = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{p}: not valid YAML: {exc}") from exc
+    if not isinstance(doc, dict) or "fdi_graph" not in doc:
+        raise ValueError(f"{p}: no 'fdi_graph' section")
+    g = doc["fdi_graph"]
+    unknown = set(g) - KNOWN_KEYS
+    if unknown:
+        raise ValueError(f"{p}: unknown key(s) in fdi_graph: {sorted(unknown)}")
+    bank = []
+    for i, e in enumerate(g.get("bank") or []):
+        if not isinstance(e, dict) or "id" not in e or "model" not in e:
+            raise ValueError(f"{p}: bank entry {i} needs 'id' and 'model'")
+        bank.append(BankEntry(id=str(e["id"]), faults=frozenset(e.get("faults") or ()),
+                              model=e["model"]))
+    if not bank:
+        raise ValueError(f"{p}: the bank is empty")
+    node_params = {k: v.get("ros__parameters", {}) for k, v in doc.items()
+                   if k != "fdi_graph" and isinstance(v, dict)}
+    cfg = GraphConfig(path=p, plant=str(g.get("plant", "")), bank=tuple(bank),
+                      t0_s=float(g.get("t0_s", 1.2)), symptoms=g.get("symptoms"),
+                      stale_s=float(g.get("stale_s", math.inf)),
+                      node_timeout_s=float(g.get("node_timeout_s", 2.0)),
+                      node_params=node_params)
+    cfg.bank_models  # validates fault sets
+    return cfg

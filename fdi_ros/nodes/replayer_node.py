@@ -1,0 +1,96 @@
+"""Replayer: publishes a bag's messages with their original timing (or ``rate`` x faster),
+driving ``/clock`` with the bag's time. Serialized messages are published as stored (no
+re-encoding). By default it replays the plant side (sensor blocks and fault ground truth), so
+preprocessor, residual generators and supervisor run again on recorded measurements.
+
+Parameters: ``bag`` (required), ``rate`` (1.0; 0 = as fast as the graph acknowledges),
+``topics`` (default: /fdi/sensor_block, /fdi/fault_truth), ``start_delay_s`` (wait for
+subscribers), ``publish_clock`` (true).
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.node import Node
+
+from fdi_ros import bag as bagio
+from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, run_node
+from fdi_ros.nodes.recorder_node import _msg_class
+
+
+class ReplayerNode(Node):
+    def __init__(self) -> None:
+        super().__init__("fdi_replayer")
+        ro = ParameterDescriptor(read_only=True)
+        self.declare_parameter("bag", "", ro)
+        self.declare_parameter("rate", 1.0, ro)
+        self.declare_parameter("topics", ["/fdi/sensor_block", "/fdi/fault_truth"], ro)
+        self.declare_parameter("start_delay_s", 1.0, ro)
+        self.declare_parameter("publish_clock", True, ro)
+        from rosgraph_msgs.msg import Clock
+
+        path = self.get_parameter("bag").value
+        if not path:
+            raise ValueError("parameter 'bag' is required")
+        topics = list(self.get_parameter("topics").value)
+        available = bagio.topics(path)
+        self._pubs: dict[str, Any] = {}
+        for t in topics:
+            if t not in available:
+                self.get_logger().warn(f"bag has no topic {t}")
+                continue
+            qos = LATCHED_QOS if t.startswith("/fdi/fault_") else DATA_QOS
+            self._pubs[t] = self.create_publisher(_msg_class(available[t][0]), t, qos)
+        self._clock = (self.create_publisher(Clock, "/clock", 10)
+                       if self.get_parameter("publish_clock").value else None)
+        self._Clock = Clock
+        self._it = bagio.read(path, list(self._pubs), raw=True)
+        self._next: tuple | None = None
+        self._rate = float(self.get_parameter("rate").value)
+        self._start = time.monotonic() + float(self.get_parameter("start_delay_s").value)
+        self._t0_bag: int | None = None
+        self._wall0 = 0.0
+        self.count = 0
+        self.done = False
+        self.create_timer(0.005, self._tick)
+        self.get_logger().info(f"replaying {path} ({', '.join(self._pubs)}) at rate "
+                               f"{self._rate or 'max'}")
+
+    def _tick(self) -> None:
+        if self.done or time.monotonic() < self._start:
+            return
+        for _ in range(200):
+            if self._next is None:
+                self._next = next(self._it, None)
+                if self._next is None:
+                    self.done = True
+                    self.get_logger().info(f"replay finished: {self.count} messages")
+                    return
+            topic, _typ, t_ns, data = self._next
+            if self._t0_bag is None:
+                self._t0_bag, self._wall0 = t_ns, time.monotonic()
+            if self._rate > 0:
+                due = self._wall0 + (t_ns - self._t0_bag) * 1e-9 / self._rate
+                if time.monotonic() < due:
+                    return
+            elif self.count % 20 == 19:
+                for p in self._pubs.values():  # max rate: stay within what readers acknowledge
+                    p.wait_for_all_acked()
+            self._pubs[topic].publish(bytes(data))
+            if self._clock is not None:
+                c = self._Clock()
+                c.clock.sec, c.clock.nanosec = divmod(t_ns, 1_000_000_000)
+                self._clock.publish(c)
+            self.count += 1
+            self._next = None
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(ReplayerNode, args=args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,127 @@
+"""Residual generator: a LifecycleNode holding ONE model of the bank (one process per model).
+
+Lifecycle (standard services ``/<node>/change_state``, ``/<node>/get_state``):
+
+* ``configure``: load the model named by the parameters (``model_id``, ``model``: a spec or
+  file understood by :func:`fdi_ros.core.residual_models.load_residual_model`); create the
+  residual publisher and the features subscription. A model that fails to load -> FAILURE,
+  with the reason logged (rclpy would otherwise swallow it).
+* ``activate``: residuals are published from now on; the model's dynamic state is reset, so a
+  model taken on line after an isolation starts from the measured state.
+* ``deactivate``: nothing is published (features are ignored).
+* ``cleanup``: model, publisher and subscription released.
+
+Parameters: ``model_id`` (string, required), ``model`` (spec string / path, required),
+``features_topic`` (/fdi/features), ``residuals_topic`` (/fdi/residuals).
+"""
+
+from __future__ import annotations
+
+import traceback
+from typing import Any
+
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
+
+from fdi_ros import msgs
+from fdi_ros.nodes.common import DATA_QOS, run_node
+
+
+class ResidualNode(LifecycleNode):
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("fdi_residual", **kwargs)
+        ro = ParameterDescriptor(read_only=True)
+        self.declare_parameter("model_id", "", ParameterDescriptor(
+            read_only=True, description="bank model id, e.g. 'nominal'"))
+        self.declare_parameter("model", "", ParameterDescriptor(
+            read_only=True, description="model spec (YAML/JSON string) or model file path"))
+        self.declare_parameter("features_topic", "/fdi/features", ro)
+        self.declare_parameter("residuals_topic", "/fdi/residuals", ro)
+        self._model: Any = None
+        self._pub: Any = None
+        self._sub: Any = None
+        self._fac = msgs.MessageFactory("rclpy")
+        self._active = False
+        self.n_published = 0
+
+    @property
+    def model_id(self) -> str:
+        return str(self.get_parameter("model_id").value)
+
+    # -- lifecycle ------------------------------------------------------------------------------
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        try:
+            from fdi_ros.core.residual_models import load_residual_model
+
+            mid = self.model_id
+            spec = self.get_parameter("model").value
+            if not mid or not spec:
+                raise ValueError("parameters 'model_id' and 'model' are required")
+            self._model = load_residual_model(spec, model_id=mid)
+            from fdi_msgs.msg import Features, Residuals
+
+            self._pub = self.create_lifecycle_publisher(
+                Residuals, self.get_parameter("residuals_topic").value, DATA_QOS)
+            self._sub = self.create_subscription(
+                Features, self.get_parameter("features_topic").value, self._on_features,
+                DATA_QOS)
+        except Exception:
+            self.get_logger().error(f"configure failed:\n{traceback.format_exc()}")
+            self._release()
+            return TransitionCallbackReturn.FAILURE
+        self.get_logger().info(f"model {self.model_id!r} loaded")
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        try:
+            reset = getattr(self._model, "reset", None)
+            if callable(reset):
+                reset()
+        except Exception:
+            self.get_logger().error(f"activate failed:\n{traceback.format_exc()}")
+            return TransitionCallbackReturn.FAILURE
+        self._active = True
+        self.get_logger().info(f"model {self.model_id!r} on line")
+        return super().on_activate(state)
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._active = False
+        self.get_logger().info(f"model {self.model_id!r} off line")
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
+        self._release()
+        return TransitionCallbackReturn.SUCCESS
+
+    def _release(self) -> None:
+        self._active = False
+        if self._sub is not None:
+            self.destroy_subscription(self._sub)
+        if self._pub is not None:
+            self.destroy_lifecycle_publisher(self._pub)
+        self._sub = self._pub = self._model = None
+
+    # -- data -----------------------------------------------------------------------------------
+    def _on_features(self, m: Any) -> None:
+        if not self._active or self._model is None:
+            return
+        fv = msgs.to_features(m)
+        try:
+            rv = self._model.residuals(fv)
+        except Exception as exc:  # a bad feature vector must not kill the model node
+            self.get_logger().warn(f"features {fv.index}: {exc}", throttle_duration_sec=5.0)
+            return
+        self._pub.publish(self._fac.residuals(rv))
+        self.n_published += 1
+
+
+def main(args: list[str] | None = None) -> int:
+    return run_node(ResidualNode, args=args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,6 +1,8 @@
 """fdi_ros: an ament_python package (``colcon build`` + ``ros2 run fdi_ros <node>`` on a real
 ROS 2 install) that also installs with plain pip into the project venv (``scripts/setup.sh``)."""
 
+from glob import glob
+
 from setuptools import find_packages, setup
 
 PACKAGE = "fdi_ros"
@@ -23,6 +25,9 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/config/scenarios", glob("config/scenarios/*.yaml")),
     ],
     python_requires=">=3.10",
     install_requires=["numpy", "scipy", "pyyaml", "rosbags", "mcap", "mcap-ros2-support",

@@ -10,6 +10,7 @@ all, waits, and kills what is left: Ctrl-C on ``fdi-ros launch`` shuts everythin
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -66,7 +67,8 @@ class Graph:
         self.env = dict(os.environ if env is None else env)
         self.env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
         self.env["PYTHONUNBUFFERED"] = "1"
-        self._tmp = tempfile.TemporaryDirectory(prefix="fdi_launch_")
+        # parameter files live until stop() (a ROS launch file keeps them for its nodes)
+        self._tmp = Path(tempfile.mkdtemp(prefix="fdi_launch_"))
         sections = {k: dict(v) for k, v in self.cfg.node_params.items() if k in NODE_KINDS}
         for k, v in (overrides or {}).items():
             sections.setdefault(k, {}).update(v)
@@ -93,7 +95,7 @@ class Graph:
                 self._add(name, NODE_KINDS[name], sections[name])
 
     def _add(self, name: str, module: str, params: dict[str, Any]) -> None:
-        pfile = Path(self._tmp.name) / f"{name}.yaml"
+        pfile = self._tmp / f"{name}.yaml"
         pfile.write_text(yaml.safe_dump({name: {"ros__parameters": params}}))
         argv = [sys.executable, "-m", f"fdi_ros.nodes.{module}", "--ros-args",
                 "-r", f"__node:={name}", "--params-file", str(pfile)]
@@ -152,7 +154,7 @@ class Graph:
                 except subprocess.TimeoutExpired:
                     os.killpg(n.proc.pid, signal.SIGKILL)
                     n.proc.wait()
-        self._tmp.cleanup()
+        shutil.rmtree(self._tmp, ignore_errors=True)
         return {n.name: (n.proc.returncode if n.proc else None) for n in self.nodes}
 
     def __enter__(self) -> "Graph":

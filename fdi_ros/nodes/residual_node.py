@@ -57,6 +57,10 @@ class ResidualNode(LifecycleNode):
             spec = self.get_parameter("model").value
             if not mid or not spec:
                 raise ValueError("parameters 'model_id' and 'model' are required")
+            if spec.lstrip().startswith("{"):  # an inline YAML/JSON mapping, not a path
+                import yaml
+
+                spec = yaml.safe_load(spec)
             self._model = load_residual_model(spec, model_id=mid)
             from fdi_msgs.msg import Features, Residuals
 

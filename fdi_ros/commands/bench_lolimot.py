@@ -1,0 +1,96 @@
+"""``fdi-ros bench lolimot``: LOLIMOT against an off-the-shelf regressor on the same data.
+
+Both learn the five diesel reference models from the same identification-cycle segments (same
+contiguous-block split; the peer gets train + validation blocks, LOLIMOT uses the validation
+blocks to choose its number of models) and are scored on the same held-out blocks.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+COMMAND = ("bench", "lolimot")
+HELP = "LOLIMOT vs scikit-learn (gradient boosting / MLP): held-out NRMSE and training time"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from fdi_ros.commands.identify import DEFAULT_IDENT
+
+    parser.add_argument("--data", default=DEFAULT_IDENT,
+                        help=f"identification data: scenario, bag or CSV (default {DEFAULT_IDENT})")
+    parser.add_argument("--mapping", default=None, help="mapping YAML for a CSV")
+    parser.add_argument("--peer", default="hgb", choices=["hgb", "mlp"],
+                        help="hgb: HistGradientBoostingRegressor; mlp: MLPRegressor")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--repeat", type=int, default=3,
+                        help="training repetitions; the fastest time is reported")
+    parser.add_argument("--json", action="store_true", help="print JSON")
+
+
+def _peer(kind: str, seed: int):
+    if kind == "hgb":
+        from sklearn.ensemble import HistGradientBoostingRegressor
+
+        return HistGradientBoostingRegressor(random_state=seed)
+    from sklearn.neural_network import MLPRegressor
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    return make_pipeline(StandardScaler(),
+                         MLPRegressor(hidden_layer_sizes=(32, 32), max_iter=500,
+                                      early_stopping=True, random_state=seed))
+
+
+def run(args: argparse.Namespace) -> int:
+    import time
+
+    import numpy as np
+
+    from fdi_ros.commands.identify import load_features
+    from fdi_ros.core.diesel.reference import (INPUTS, OUTPUTS, PHASES, IdentificationConfig,
+                                               circular_mean, feature_table, nrmse,
+                                               split_blocks, wrap_phase)
+
+    if args.repeat < 1:
+        raise ValueError("--repeat must be >= 1")
+    data = feature_table(load_features(args.data, seed=args.seed, mapping=args.mapping))
+    cfg = IdentificationConfig(seed=args.seed)
+    X = np.column_stack([data[k] for k in INPUTS])
+    tr, va, te = split_blocks(X.shape[0], block=cfg.block, seed=cfg.seed)
+    trva = np.concatenate([tr, va])
+    report = {"data": args.data, "n_train": int(tr.size), "n_val": int(va.size),
+              "n_test": int(te.size), "peer": type(_peer(args.peer, 0)).__name__,
+              "models": {}}
+    for k in OUTPUTS:
+        y = data[k]
+        if k in PHASES:
+            y = wrap_phase(y, circular_mean(y[tr]))
+        t_lol, t_peer = [], []
+        for _ in range(args.repeat):
+            m = cfg.lolimot()
+            t0 = time.perf_counter()
+            m.fit(X[tr], y[tr], X_val=X[va], y_val=y[va])
+            t_lol.append(time.perf_counter() - t0)
+            p = _peer(args.peer, args.seed)
+            t0 = time.perf_counter()
+            p.fit(X[trva], y[trva])
+            t_peer.append(time.perf_counter() - t0)
+        e, ep = nrmse(y[te], m.predict(X[te])), nrmse(y[te], p.predict(X[te]))
+        report["models"][k] = {"nrmse": round(e, 5), "train_s": round(min(t_lol), 4),
+                               "n_models": m.n_models, "peer_nrmse": round(ep, 5),
+                               "peer_train_s": round(min(t_peer), 4),
+                               "nrmse_ratio": round(e / ep, 3),
+                               "time_ratio": round(min(t_lol) / min(t_peer), 3)}
+    ms = report["models"].values()
+    report["summary"] = {
+        "accuracy_equal_or_better": sum(v["nrmse"] <= 1.02 * v["peer_nrmse"] for v in ms),
+        "mean_time_ratio": round(float(np.mean([v["time_ratio"] for v in ms])), 3),
+        "goal": "nrmse <= peer_nrmse at train_s <= 0.1 * peer_train_s"}
+    if args.json:
+        print(json.dumps(report, indent=1))
+    else:
+        for k, v in report["models"].items():
+            print(f"{k:10s} LOLIMOT nrmse={v['nrmse']:.4f} in {v['train_s']:.3f} s | "
+                  f"{report['peer']} nrmse={v['peer_nrmse']:.4f} in {v['peer_train_s']:.3f} s")
+    return 0

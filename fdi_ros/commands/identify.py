@@ -1,0 +1,279 @@
+"""``fdi-ros identify``: identify the diesel reference models (LOLIMOT + ECU tables).
+
+Data: a scenario YAML (simulated with the diesel plant), a bag (features, or sensor blocks that
+are segmented here) or a CSV (+ mapping). Writes the model set (npz + table JSON + manifest),
+fault-free thresholds (when a fault-free driving scenario is given) and figures like the
+paper's Figs. 5, 7-10.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from pathlib import Path
+
+COMMAND = ("identify",)
+HELP = "identify the diesel reference models (LOLIMOT, look-up tables) from a bag, CSV or scenario"
+
+DEFAULT_IDENT = "config/scenarios/diesel_ident.yaml"
+DEFAULT_DRIVE = "config/scenarios/diesel_drive.yaml"
+CACHE_DIR = Path("build/cache/features")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--plant", default="diesel", choices=["diesel"],
+                        help="plant configuration (only the diesel plant has these models)")
+    parser.add_argument("--data", default=DEFAULT_IDENT,
+                        help="identification data: scenario YAML, bag directory or CSV "
+                             f"(default {DEFAULT_IDENT})")
+    parser.add_argument("--mapping", default=None, help="mapping YAML for a CSV")
+    parser.add_argument("--fault-free", default=DEFAULT_DRIVE,
+                        help="fault-free transient data for the thresholds (scenario, bag or "
+                             "CSV; 'none' to skip)")
+    parser.add_argument("--out", default="build/models/diesel", help="output model directory")
+    parser.add_argument("--figures", default=None, help="directory for PNG figures")
+    parser.add_argument("--seed", type=int, default=0, help="simulation/split seed")
+    parser.add_argument("--threshold-seed", type=int, default=101,
+                        help="seed of the fault-free threshold simulation")
+    parser.add_argument("--max-models", type=int, default=None, help="LOLIMOT max_models")
+    parser.add_argument("--lut-n", default=None,
+                        help="table breakpoints in rpm, comma separated (default 17 points)")
+    parser.add_argument("--lut-rho2", default=None,
+                        help="table breakpoints in kg/m^3, comma separated (default 13 points)")
+    parser.add_argument("--json", action="store_true", help="print the report as JSON")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def _floats(text: str | None) -> tuple[float, ...]:
+    if not text:
+        return ()
+    try:
+        return tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise ValueError(f"breakpoints must be comma-separated numbers, got {text!r}") from None
+
+
+def _blocks_from_csv(path: Path, mapping):
+    import numpy as np
+
+    from fdi_ros.core.measured import load_csv
+    from fdi_ros.core.types import SampleBlock
+
+    m = load_csv(path, mapping)
+    if m.alpha is None:
+        raise ValueError(f"{path}: the diesel features need a crank-angle column 'alpha'")
+    names = tuple(k for k in m.signals if k in ("n", "p2", "T2", "maf", "p_amb", "T_amb"))
+    vals = np.vstack([m.signals[k] for k in names])
+    return [SampleBlock(plant="diesel", index=0, t=m.t, alpha=m.alpha, channels=names,
+                        units=tuple(m.units[k] for k in names), values=vals)]
+
+
+def features_from_blocks(blocks) -> list:
+    from fdi_ros.core.crank import segment_features
+
+    out = []
+    for b in blocks:
+        out.extend(segment_features(b))
+    return out
+
+
+def simulate_features(scenario_path, *, seed: int, progress: bool = False):
+    """Simulate a diesel scenario and segment it; returns (features, fault truth events)."""
+    from fdi_ros.core.diesel.plant import load_scenario, simulate
+
+    sim = simulate(load_scenario(scenario_path), seed=seed)
+    blocks = getattr(sim, "blocks", None)
+    feats = getattr(sim, "features", None)
+    if feats is None:
+        if blocks is None:
+            raise ValueError("simulation result has neither blocks nor features")
+        feats = features_from_blocks(blocks)
+    truth = list(getattr(sim, "faults", None) or getattr(sim, "truth", None) or [])
+    return list(feats), truth
+
+
+def load_features(source, *, seed: int = 0, mapping=None, cache: bool = True) -> list:
+    """Feature vectors of a scenario (simulated, cached in build/), bag or CSV."""
+    path = Path(source)
+    if not path.exists():
+        raise FileNotFoundError(f"no data at {path}")
+    if path.suffix in (".yaml", ".yml"):
+        key = hashlib.sha1(path.read_bytes() + f"seed={seed}".encode()).hexdigest()[:16]
+        cached = CACHE_DIR / f"{path.stem}_{seed}_{key}.npz"
+        if cache and cached.exists():
+            return _read_cache(cached)
+        feats, _ = simulate_features(path, seed=seed)
+        if cache:
+            _write_cache(cached, feats)
+        return feats
+    if path.is_dir():
+        from fdi_ros import bag
+
+        tops = bag.topics(path)
+        if "/fdi/features" in tops:
+            return bag.read_features(path)
+        if "/fdi/sensor_block" in tops:
+            return features_from_blocks(bag.read_blocks(path))
+        raise ValueError(f"{path}: bag has neither /fdi/features nor /fdi/sensor_block")
+    if path.suffix.lower() == ".csv":
+        return features_from_blocks(_blocks_from_csv(path, mapping))
+    raise ValueError(f"{path}: expected a scenario .yaml, a bag directory or a .csv")
+
+
+def _write_cache(path: Path, feats) -> None:
+    import numpy as np
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not feats:
+        return
+    names = feats[0].names
+    if any(f.names != names for f in feats):
+        return  # heterogeneous vectors: not worth caching
+    np.savez_compressed(
+        path, names=np.array(names), units=np.array(feats[0].units),
+        values=np.vstack([f.values for f in feats]),
+        meta=np.array([[f.index, f.t_start, f.t_end, f.alpha_start] for f in feats]),
+        valid=np.array([f.valid for f in feats]), status=np.array([f.status for f in feats]),
+        plant=np.array(feats[0].plant))
+
+
+def _read_cache(path: Path) -> list:
+    import numpy as np
+
+    from fdi_ros.core.types import FeatureVector
+
+    with np.load(path, allow_pickle=False) as z:
+        names = tuple(str(x) for x in z["names"])
+        units = tuple(str(x) for x in z["units"])
+        plant = str(z["plant"])
+        return [FeatureVector(plant=plant, index=int(m[0]), t_start=float(m[1]),
+                              t_end=float(m[2]), alpha_start=float(m[3]), valid=bool(ok),
+                              status=str(st), names=names, units=units, values=v)
+                for v, m, ok, st in zip(z["values"], z["meta"], z["valid"], z["status"])]
+
+
+def calibrate_from_features(mset, feats):
+    """Fault-free residual statistics -> SymptomConfig (thresholds), plus residuals."""
+    from fdi_ros.core.diesel.reference import feature_table
+    from fdi_ros.core.diesel.symptoms import calibrate_thresholds, parity_residuals
+
+    data = feature_table(feats)
+    R, valid = parity_residuals(mset, data)
+    return calibrate_thresholds(R, valid), R, valid, data
+
+
+def run(args: argparse.Namespace) -> int:
+    from fdi_ros.core.diesel.reference import (IdentificationConfig, feature_table,
+                                               identify_reference_models)
+    from fdi_ros.core.diesel.symptoms import THRESHOLDS_FILE
+
+    progress = not args.no_progress
+    kw = {}
+    if args.max_models is not None:
+        kw["max_models"] = args.max_models
+    cfg = IdentificationConfig(seed=args.seed, lut_n=_floats(args.lut_n),
+                               lut_rho2=_floats(args.lut_rho2), **kw)
+    feats = load_features(args.data, seed=args.seed, mapping=args.mapping)
+    data = feature_table(feats)
+    res = identify_reference_models(data, config=cfg, progress=progress)
+    out = Path(args.out)
+    res.models.save(out)
+    report = {"out": str(out), "n_segments": int(data["n"].size), "n_train": res.n_train,
+              "n_val": res.n_val, "n_test": res.n_test, "train_s": round(res.train_s, 3),
+              "models": {k: {"n_models": r.n_models, "nrmse_test": round(res.nrmse_test[k], 4),
+                             "nrmse_test_lut": round(res.nrmse_test_lut[k], 4),
+                             "lut_vs_model_rmse": res.lut_error[k]["rmse"],
+                             "stop": r.message}
+                         for k, r in res.results.items()}}
+    if args.fault_free and args.fault_free.lower() != "none":
+        ff = load_features(args.fault_free, seed=args.threshold_seed, mapping=args.mapping)
+        scfg, R, valid, _ = calibrate_from_features(res.models, ff)
+        (out / THRESHOLDS_FILE).write_text(json.dumps(scfg.to_dict(), indent=1))
+        report["thresholds"] = dict(zip(scfg.names, scfg.threshold))
+        report["threshold_segments"] = int(valid.sum())
+    if args.figures:
+        report["figures"] = [str(p) for p in identification_figures(res, data, args.figures)]
+    if args.json:
+        print(json.dumps(report, indent=1))
+    else:
+        print(f"identified {len(res.results)} models from {report['n_segments']} segments "
+              f"in {res.train_s:.2f} s -> {out}")
+        for k, v in report["models"].items():
+            print(f"  {k:10s} models={v['n_models']:2d}  held-out NRMSE={v['nrmse_test']:.4f}"
+                  f"  (table {v['nrmse_test_lut']:.4f})")
+    return 0
+
+
+def identification_figures(res, data, outdir) -> list[Path]:
+    """Partition with centres (paper Fig. 5), data distribution (Fig. 7) and each model's map
+    against the data points (Figs. 8-10), plus held-out predicted-vs-measured."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+    from matplotlib.patches import Rectangle
+
+    from fdi_ros.core.diesel.reference import INPUTS, UNITS, split_blocks
+
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    X = np.column_stack([data[k] for k in INPUTS])
+    _, _, te = split_blocks(X.shape[0], block=res.models.info["config"]["block"],
+                            seed=res.models.info["config"]["seed"])
+    mset = res.models
+    # Fig. 5 + 7: partition of the eta_v model, centres, data points.
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
+    for ax, k in zip(axes, ("eta_v", "maf_amp")):
+        m = mset.models[k]
+        ax.plot(X[:, 0], X[:, 1], ".", ms=1, color="0.7", label="data points")
+        lo, hi = m.cell_bounds
+        for a, b in zip(lo, hi):
+            ax.add_patch(Rectangle(a, *(b - a), fill=False, lw=1.2, color="C0"))
+        c = m.centres
+        ax.plot(c[:, 0], c[:, 1], "x", color="C3", ms=8, mew=2, label="local model centres")
+        ax.set_xlabel(f"engine speed n [{UNITS['n']}]")
+        ax.set_ylabel(f"boost density rho2 [{UNITS['rho2']}]")
+        ax.set_title(f"LOLIMOT partition of {k}: {m.n_models} local models")
+        ax.legend(loc="upper left", fontsize=8)
+    fig.tight_layout()
+    paths.append(outdir / "fig05_partition.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+    # Figs. 8-10: maps (look-up table over the identified region) against the data points.
+    for k in mset.outputs:
+        tab = mset.tables[k]
+        bn, br = tab.breakpoints
+        nn, rr = np.meshgrid(np.linspace(bn[0], bn[-1], 60), np.linspace(br[0], br[-1], 50))
+        P = np.column_stack([nn.ravel(), rr.ravel()])
+        v, ok = tab.evaluate(P)
+        V = np.where(ok, v, np.nan).reshape(nn.shape)
+        y = data[k]
+        if k in mset.phase_centre:
+            from fdi_ros.core.diesel.reference import wrap_phase
+            y = wrap_phase(y, mset.phase_centre[k])
+        fig = plt.figure(figsize=(13, 5))
+        ax = fig.add_subplot(1, 2, 1, projection="3d")
+        ax.plot_surface(nn, rr, np.ma.masked_invalid(V), cmap="viridis", alpha=0.7,
+                        linewidth=0)
+        sub = np.arange(0, X.shape[0], max(1, X.shape[0] // 1500))
+        ax.scatter(X[sub, 0], X[sub, 1], y[sub], s=2, color="k", label="data points")
+        ax.set_xlabel("n [rpm]")
+        ax.set_ylabel("rho2 [kg/m^3]")
+        ax.set_zlabel(f"{k} [{UNITS[k]}]")
+        ax.set_title(f"reference model {k} (ECU table) vs data")
+        ax2 = fig.add_subplot(1, 2, 2)
+        yp = mset.models[k].predict(X[te])
+        ax2.plot(y[te], yp, ".", ms=2)
+        lim = [np.nanmin(y[te]), np.nanmax(y[te])]
+        ax2.plot(lim, lim, "k--", lw=1)
+        ax2.set_xlabel(f"measured {k} [{UNITS[k]}]")
+        ax2.set_ylabel(f"model {k} [{UNITS[k]}]")
+        ax2.set_title(f"held-out segments: NRMSE = {res.nrmse_test[k]:.3f}")
+        fig.tight_layout()
+        paths.append(outdir / f"map_{k}.png")
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
+    return paths

@@ -1,0 +1,129 @@
+"""Reference model set on a synthetic engine map with known functions (no plant needed):
+held-out accuracy, phase wrapping, tables, save/load, residual model via the registry."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from fdi_ros.core.diesel.reference import (INPUTS, OUTPUTS, IdentificationConfig,
+                                           ReferenceModelSet, feature_table,
+                                           identify_reference_models, wrap_phase)
+from fdi_ros.core.diesel.symptoms import (RESIDUALS, THRESHOLDS_FILE, calibrate_thresholds,
+                                          parity_residuals)
+from fdi_ros.core.residual_models import load_residual_model
+from fdi_ros.core.types import FeatureVector
+
+TRUE = {
+    "eta_v": lambda n, r: 0.80 + 0.05 * np.sin(n / 600.0) - 0.02 * (r - 2.0) ** 2,
+    "maf_amp": lambda n, r: 30.0 * np.exp(-((n - 2000.0) / 600.0) ** 2) * r + 2.0,
+    "maf_phase": lambda n, r: -40.0 + 0.03 * n + 2.0 * r,
+    "p2_amp": lambda n, r: 900.0 * r + 0.2 * n,
+    "p2_phase": lambda n, r: 80.0 + 0.02 * n,      # crosses the +-90 deg CA wrap
+}
+NOISE = {"eta_v": 0.003, "maf_amp": 0.5, "maf_phase": 1.0, "p2_amp": 20.0, "p2_phase": 1.0}
+NAMES = INPUTS + OUTPUTS
+
+
+def _synthetic(n_seg, seed):
+    rng = np.random.default_rng(seed)
+    # A slow sweep of speed and boost with the "low speed, high boost" corner empty.
+    t = np.arange(n_seg)
+    n = 2400 + 1600 * np.sin(2 * np.pi * t / 3000.0) + rng.normal(0, 20, n_seg)
+    rmax = 1.3 + 1.7 * np.clip((n - 800) / 2400, 0, 1)
+    r = 1.1 + (rmax - 1.1) * (0.5 + 0.5 * np.sin(2 * np.pi * t / 377.0))
+    d = {"n": n, "rho2": r}
+    for k, f in TRUE.items():
+        d[k] = f(n, r) + rng.normal(0, NOISE[k], n_seg)
+    for k in ("maf_phase", "p2_phase"):
+        d[k] = wrap_phase(d[k], 0.0)   # measured phases come wrapped to +-90 deg CA
+    return d
+
+
+def _fvs(d, start=0):
+    m = d["n"].size
+    return [FeatureVector(plant="diesel", index=start + i, t_start=0.015 * (start + i),
+                          t_end=0.015 * (start + i + 1), alpha_start=180.0 * (start + i),
+                          valid=True, status="", names=NAMES, units=("",) * len(NAMES),
+                          values=np.array([d[k][i] for k in NAMES])) for i in range(m)]
+
+
+@pytest.fixture(scope="module")
+def identified():
+    d = _synthetic(9000, 0)
+    res = identify_reference_models(d, config=IdentificationConfig(max_models=12))
+    return d, res
+
+
+def test_held_out_accuracy_and_phase_branches(identified):
+    d, res = identified
+    assert res.success and res.n_test > 1000
+    # Noise-limited: the held-out NRMSE is close to noise std / signal std.
+    for k in OUTPUTS:
+        y = d[k] if k not in res.models.phase_centre else wrap_phase(
+            d[k], res.models.phase_centre[k])
+        floor = NOISE[k] / np.std(y)
+        assert res.nrmse_test[k] < floor + 0.08, (k, res.nrmse_test[k], floor)
+        assert res.nrmse_test_lut[k] < res.nrmse_test[k] + 0.05
+    # p2_phase spans 96..160 deg CA: centred branch, no jump at the wrap.
+    assert 110 < wrap_phase(res.models.phase_centre["p2_phase"], 130.0) < 150
+    n = np.array([1500.0, 3500.0])
+    ref, valid = res.models.predict(n, np.array([1.5, 2.5]))
+    assert valid.all()
+    np.testing.assert_allclose(wrap_phase(ref["p2_phase"] - TRUE["p2_phase"](n, 0)), 0, atol=2.0)
+
+
+def test_empty_corner_is_not_identified(identified):
+    _, res = identified
+    _, valid = res.models.predict(np.array([900.0, 3000.0]), np.array([2.8, 2.0]))
+    assert valid.tolist() == [False, True]
+
+
+def test_save_load_and_residual_model_through_registry(identified, tmp_path):
+    d, res = identified
+    res.models.save(tmp_path)
+    back = ReferenceModelSet.load(tmp_path)
+    X = np.column_stack([d["n"][:200], d["rho2"][:200]])
+    a, _ = res.models.predict(X[:, 0], X[:, 1])
+    b, _ = back.predict(X[:, 0], X[:, 1])
+    for k in OUTPUTS:
+        np.testing.assert_array_equal(a[k], b[k])
+    # Fault-free residual statistics on fresh data, then the bank's nominal model.
+    fresh = _synthetic(3000, 7)
+    R, valid = parity_residuals(back, fresh)
+    cfg = calibrate_thresholds(R, valid)
+    (tmp_path / THRESHOLDS_FILE).write_text(json.dumps(cfg.to_dict()))
+    model = load_residual_model(tmp_path, model_id="nominal")
+    fv = _fvs(fresh)[100]
+    rv = model.residuals(fv)
+    assert rv.model_id == "nominal" and rv.valid and rv.names == RESIDUALS
+    np.testing.assert_allclose(rv.values, R[100])
+    assert 0 <= rv.norm < 5
+    # Residual sign of eq. 10: less air than the model -> positive r_eta.
+    vals = fv.values.copy()
+    vals[NAMES.index("eta_v")] -= 0.05
+    low = FeatureVector(**{**fv.__dict__, "values": vals})
+    assert model.residuals(low).values[0] == pytest.approx(R[100, 0] + 0.05)
+    # Outside the identified region: not valid here.
+    vals = fv.values.copy()
+    vals[:2] = [900.0, 2.8]
+    out = model.residuals(FeatureVector(**{**fv.__dict__, "values": vals}))
+    assert not out.valid and "identified region" in out.status
+    bad = FeatureVector(**{**fv.__dict__, "valid": False, "status": "crank gap"})
+    assert not model.residuals(bad).valid
+
+
+def test_feature_table_and_bad_input():
+    d = _synthetic(50, 1)
+    fvs = _fvs(d)
+    fvs[3] = FeatureVector(**{**fvs[3].__dict__, "valid": False})
+    tab = feature_table(fvs)
+    assert tab["n"].size == 49
+    with pytest.raises(ValueError):
+        identify_reference_models({"n": d["n"]})
+    with pytest.raises(ValueError):
+        identify_reference_models(d)  # too few segments
+    with pytest.raises(FileNotFoundError):
+        ReferenceModelSet.load("/nonexistent/models")

@@ -1,0 +1,115 @@
+"""A watcher in the caller's own process: subscribes to the graph's outputs and waits on them.
+
+Used by ``fdi-ros demo``, ``fdi-ros bench graph`` and the graph tests: every wait spins on
+messages and lifecycle states with a deadline, never a fixed sleep.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from fdi_ros import msgs
+from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, ensure_loopback_env
+
+
+@dataclass
+class Seen:
+    """Everything the watcher received, with the wall time of arrival."""
+
+    diagnoses: list[tuple[float, Any]] = field(default_factory=list)
+    symptoms: list[tuple[float, Any]] = field(default_factory=list)
+    truth: list[tuple[float, Any]] = field(default_factory=list)
+    diagnostics: list[tuple[float, Any]] = field(default_factory=list)
+    features: list[tuple[float, Any]] = field(default_factory=list)
+    blocks: list[tuple[float, Any]] = field(default_factory=list)
+
+
+class GraphWatcher:
+    """An rclpy context + node of its own that records the graph's topics.
+
+    ``watch_blocks`` / ``watch_features`` also record the high-rate streams (only the header
+    times are kept, for latency measurements).
+    """
+
+    def __init__(self, name: str = "fdi_watcher", *, watch_features: bool = False,
+                 watch_blocks: bool = False) -> None:
+        ensure_loopback_env()
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from fdi_msgs.msg import Diagnosis, FaultEvent, Features, SensorBlock, Symptoms
+        from rclpy.executors import SingleThreadedExecutor
+
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(self.node)
+        self.seen = Seen()
+        now = time.monotonic
+        sub = self.node.create_subscription
+        sub(Diagnosis, "/fdi/diagnosis",
+            lambda m: self.seen.diagnoses.append((now(), msgs.to_diagnosis(m))), DATA_QOS)
+        sub(Symptoms, "/fdi/symptoms", lambda m: self.seen.symptoms.append((now(), m)), DATA_QOS)
+        sub(FaultEvent, "/fdi/fault_truth",
+            lambda m: self.seen.truth.append((now(), msgs.to_fault_event(m))), LATCHED_QOS)
+        sub(DiagnosticArray, "/diagnostics",
+            lambda m: self.seen.diagnostics.append((now(), m)), 50)
+        if watch_features:
+            sub(Features, "/fdi/features",
+                lambda m: self.seen.features.append((now(), (int(m.index), float(m.t_end_s)))),
+                DATA_QOS)
+        if watch_blocks:
+            sub(SensorBlock, "/fdi/sensor_block",
+                lambda m: self.seen.blocks.append((now(), float(m.stamp_s[-1]))), DATA_QOS)
+        self._inject = self.node.create_publisher(FaultEvent, "/fdi/fault_inject", LATCHED_QOS)
+        self._fac = msgs.MessageFactory("rclpy")
+
+    def spin_until(self, cond: Callable[[], Any], timeout: float, what: str,
+                   alive: Callable[[], bool] | None = None) -> Any:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            v = cond()
+            if v:
+                return v
+            if alive is not None and not alive():
+                raise RuntimeError(f"the graph stopped while waiting for {what}")
+            self.executor.spin_once(timeout_sec=0.05)
+        raise TimeoutError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+    def inject(self, event: Any) -> None:
+        self._inject.publish(self._fac.fault_event(event))
+
+    def lifecycle_state(self, node_name: str, timeout: float = 10.0) -> str:
+        """Label of a lifecycle node's current state, via its get_state service."""
+        from lifecycle_msgs.srv import GetState
+
+        cli = self.node.create_client(GetState, f"/{node_name}/get_state")
+        try:
+            if not cli.wait_for_service(timeout_sec=timeout):
+                return "unreachable"
+            fut = cli.call_async(GetState.Request())
+            self.spin_until(fut.done, timeout, f"get_state of {node_name}")
+            return fut.result().current_state.label
+        finally:
+            self.node.destroy_client(cli)
+
+    def last_diagnosis(self) -> Any:
+        return self.seen.diagnoses[-1][1] if self.seen.diagnoses else None
+
+    def diagnostic_status(self, name: str) -> Any:
+        """The newest /diagnostics status with this name, or None."""
+        for _, arr in reversed(self.seen.diagnostics):
+            for st in arr.status:
+                if st.name == name:
+                    return st
+        return None
+
+    def close(self) -> None:
+        import rclpy
+
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)

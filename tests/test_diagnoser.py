@@ -1,0 +1,108 @@
+"""The diagnosis core shared by the live supervisor and offline diagnose: graph configuration
+parsing, bank switching through the pipeline, and bad configuration files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fdi_ros.core.diagnoser import Diagnoser, diagnose_offline
+from fdi_ros.core.graphconfig import load_graph_config
+from fdi_ros.core.residual_models import register_residual_model
+from fdi_ros.core.types import FeatureVector, ResidualVector
+
+CONFIG = """
+fdi_graph:
+  plant: toy
+  t0_s: 0.5
+  bank:
+    - {id: nominal, faults: [], model: {type: toy_offset, offset: 0.0}}
+    - {id: a, faults: [a], model: {type: toy_offset, offset: 1.0}}
+    - {id: b, faults: [b], model: {type: toy_offset, offset: -1.0}}
+    - {id: a+b, faults: [a, b], model: {type: toy_offset, offset: 3.0}}
+fdi_plant:
+  ros__parameters: {plant: toy}
+"""
+
+
+class ToyOffset:
+    """Residual y - offset of one feature 'y'; norm = |residual|."""
+
+    def __init__(self, offset: float, model_id: str) -> None:
+        self.offset, self.model_id, self.resets = offset, model_id, 0
+
+    def residuals(self, fv: FeatureVector) -> ResidualVector:
+        r = fv.get("y") - self.offset
+        return ResidualVector(self.model_id, fv.index, fv.t_end, fv.valid, fv.status, ("r",),
+                              ("1",), np.array([r]), abs(r))
+
+    def reset(self) -> None:
+        self.resets += 1
+
+
+@register_residual_model("toy_offset")
+def _toy(spec: dict, *, base_dir: Path, model_id: str) -> ToyOffset:
+    return ToyOffset(float(spec["offset"]), model_id)
+
+
+def _features(ys: list[float], dt: float = 0.1) -> list[FeatureVector]:
+    return [FeatureVector("toy", i, i * dt, (i + 1) * dt, float("nan"), True, "", ("y",),
+                          ("1",), np.array([y])) for i, y in enumerate(ys)]
+
+
+@pytest.fixture
+def cfg(tmp_path: Path):
+    p = tmp_path / "toy.yaml"
+    p.write_text(CONFIG)
+    return load_graph_config(p)
+
+
+def test_config_parsed(cfg):
+    assert [e.id for e in cfg.bank] == ["nominal", "a", "b", "a+b"]
+    assert cfg.entry("a+b").node_name == "fdi_model_a_b"
+    assert cfg.node_params["fdi_plant"] == {"plant": "toy"}
+    assert cfg.t0_s == 0.5
+
+
+def test_offline_pipeline_isolates_and_switches_bank(cfg):
+    # 1 s fault free (y = 0), then fault a (y = 1) for 2 s
+    feats = _features([0.0] * 10 + [1.0] * 20)
+    steps = diagnose_offline(cfg, feats)
+    d = [s.diagnosis for _, _, s in steps]
+    assert all(x.state == "no_fault" for x in d[:10])
+    assert d[10].state == "detected" and d[10].min_residual_model == "a"
+    # isolated once 'a' held the minimum for T0 = 0.5 s (5 segments of 0.1 s)
+    iso = next(i for i, x in enumerate(d) if x.state == "isolated")
+    assert iso == 15 and d[iso].isolated_faults == ("a",)
+    assert d[iso].detection_time == pytest.approx(1.1)
+    assert d[iso].isolation_time == pytest.approx(1.6)
+    # bank rules: a isolated -> a and a+b on line, nominal and b off line
+    switch = steps[iso][2]
+    assert switch.switched and set(switch.removed) == {"nominal", "b"}
+    assert switch.added == ("a+b",)
+    assert set(steps[-1][1]) == {"a", "a+b"}  # only on-line models were evaluated
+
+
+def test_missing_model_residuals_do_not_stop_the_diagnosis(cfg):
+    diag = Diagnoser(cfg)
+    models = {e.id: ToyOffset(o, e.id) for e, o in zip(cfg.bank, (0.0, 1.0, -1.0, 3.0))}
+    for fv in _features([1.0] * 10):
+        res = {k: models[k].residuals(fv) for k in diag.models_online if k != "b"}  # b died
+        step = diag.update(fv.index, fv.t_end, res)
+    assert step.diagnosis.state == "isolated" and step.diagnosis.fault_model == "a"
+
+
+@pytest.mark.parametrize("text, msg", [
+    ("fdi_graph: {plant: x}", "bank is empty"),
+    ("nothing: 1", "no 'fdi_graph'"),
+    ("fdi_graph: {plant: x, bank: [{id: a}]}", "needs 'id' and 'model'"),
+    ("fdi_graph: {plant: x, bogus: 1, bank: [{id: a, model: m}]}", "unknown key"),
+    ("fdi_graph: [", "not valid YAML"),
+])
+def test_bad_config_clear_error(tmp_path: Path, text: str, msg: str):
+    p = tmp_path / "bad.yaml"
+    p.write_text(text)
+    with pytest.raises(ValueError, match=msg):
+        load_graph_config(p)

@@ -127,3 +127,22 @@ def test_feature_table_and_bad_input():
         identify_reference_models(d)  # too few segments
     with pytest.raises(FileNotFoundError):
         ReferenceModelSet.load("/nonexistent/models")
+
+
+def test_stream_residuals_equal_the_per_segment_model(identified, tmp_path):
+    from fdi_ros.core.diesel.symptoms import ReferenceResidualModel, stream_residuals
+
+    d, res = identified
+    fresh = _synthetic(400, 9)
+    R, valid = parity_residuals(res.models, fresh)
+    cfg = calibrate_thresholds(R, valid)
+    fvs = _fvs(fresh)
+    vals = fvs[5].values.copy()
+    vals[:2] = [900.0, 2.8]
+    fvs[5] = FeatureVector(**{**fvs[5].__dict__, "values": vals})
+    one = ReferenceResidualModel(models=res.models, config=cfg)
+    for a, b in zip(stream_residuals(res.models, fvs, config=cfg),
+                    [one.residuals(fv) for fv in fvs]):
+        assert (a.valid, a.status, a.index) == (b.valid, b.status, b.index)
+        np.testing.assert_allclose(a.values, b.values)
+        np.testing.assert_allclose(a.norm, b.norm)

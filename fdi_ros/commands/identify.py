@@ -163,21 +163,19 @@ def calibrate_from_features(mset, feats):
     return calibrate_thresholds(R, valid), R, valid, data
 
 
-def run(args: argparse.Namespace) -> int:
+def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
+                 threshold_seed: int = 101, mapping=None, config=None, progress: bool = True,
+                 figures=None):
+    """Identify, save, calibrate the fault-free thresholds; returns (result, symptom config or
+    None, report dict)."""
     from fdi_ros.core.diesel.reference import (IdentificationConfig, feature_table,
                                                identify_reference_models)
     from fdi_ros.core.diesel.symptoms import THRESHOLDS_FILE
 
-    progress = not args.no_progress
-    kw = {}
-    if args.max_models is not None:
-        kw["max_models"] = args.max_models
-    cfg = IdentificationConfig(seed=args.seed, lut_n=_floats(args.lut_n),
-                               lut_rho2=_floats(args.lut_rho2), **kw)
-    feats = load_features(args.data, seed=args.seed, mapping=args.mapping)
-    data = feature_table(feats)
+    cfg = config or IdentificationConfig(seed=seed)
+    data = feature_table(load_features(data_source, seed=seed, mapping=mapping))
     res = identify_reference_models(data, config=cfg, progress=progress)
-    out = Path(args.out)
+    out = Path(out)
     res.models.save(out)
     report = {"out": str(out), "n_segments": int(data["n"].size), "n_train": res.n_train,
               "n_val": res.n_val, "n_test": res.n_test, "train_s": round(res.train_s, 3),
@@ -186,24 +184,39 @@ def run(args: argparse.Namespace) -> int:
                              "lut_vs_model_rmse": res.lut_error[k]["rmse"],
                              "stop": r.message}
                          for k, r in res.results.items()}}
-    if args.fault_free and args.fault_free.lower() != "none":
-        ff = load_features(args.fault_free, seed=args.threshold_seed, mapping=args.mapping)
-        scfg, R, valid, _ = calibrate_from_features(res.models, ff)
+    scfg = None
+    if fault_free and str(fault_free).lower() != "none":
+        ff = load_features(fault_free, seed=threshold_seed, mapping=mapping)
+        scfg, _, valid, _ = calibrate_from_features(res.models, ff)
         (out / THRESHOLDS_FILE).write_text(json.dumps(scfg.to_dict(), indent=1))
         report["thresholds"] = dict(zip(scfg.names, scfg.threshold))
         report["threshold_segments"] = int(valid.sum())
-    if args.figures:
-        report["figures"] = [str(p) for p in identification_figures(res, data, args.figures)]
+    if figures:
+        report["figures"] = [str(p) for p in identification_figures(res, data, figures)]
+    return res, scfg, report
+
+
+def run(args: argparse.Namespace) -> int:
+    from fdi_ros.core.diesel.reference import IdentificationConfig
+
+    kw = {}
+    if args.max_models is not None:
+        kw["max_models"] = args.max_models
+    cfg = IdentificationConfig(seed=args.seed, lut_n=_floats(args.lut_n),
+                               lut_rho2=_floats(args.lut_rho2), **kw)
+    res, _, report = build_models(args.data, out=args.out, seed=args.seed,
+                                  fault_free=args.fault_free, threshold_seed=args.threshold_seed,
+                                  mapping=args.mapping, config=cfg,
+                                  progress=not args.no_progress, figures=args.figures)
     if args.json:
         print(json.dumps(report, indent=1))
     else:
         print(f"identified {len(res.results)} models from {report['n_segments']} segments "
-              f"in {res.train_s:.2f} s -> {out}")
+              f"in {res.train_s:.2f} s -> {report['out']}")
         for k, v in report["models"].items():
             print(f"  {k:10s} models={v['n_models']:2d}  held-out NRMSE={v['nrmse_test']:.4f}"
                   f"  (table {v['nrmse_test_lut']:.4f})")
     return 0
-
 
 def identification_figures(res, data, outdir) -> list[Path]:
     """Partition with centres (paper Fig. 5), data distribution (Fig. 7) and each model's map

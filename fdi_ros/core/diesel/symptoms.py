@@ -406,3 +406,46 @@ def _register() -> None:
 
 
 _register()
+
+
+def stream_residuals(models: ReferenceModelSet, features: Sequence[FeatureVector], *,
+                     config: SymptomConfig | None = None,
+                     model_id: str = "nominal") -> list[ResidualVector]:
+    """Nominal residual vectors for a stream of feature vectors, vectorised (offline use);
+    identical to :class:`ReferenceResidualModel` segment by segment."""
+    names = ("n", "rho2", "eta_v", "maf_amp", "maf_phase", "p2_amp", "p2_phase")
+    feats = list(features)
+    if not feats:
+        return []
+    cols = {}
+    for k in names:
+        cols[k] = np.array([fv.values[fv.names.index(k)] if k in fv.names else np.nan
+                            for fv in feats], dtype=float)
+    R, ok = parity_residuals(models, cols)
+    c = np.asarray(config.centre) if config else 0.0
+    out = []
+    for i, fv in enumerate(feats):
+        has_all = all(k in fv.names for k in names)
+        valid = bool(fv.valid) and has_all and bool(ok[i])
+        if not fv.valid:
+            status = fv.status or "features not valid"
+        elif not has_all:
+            status = "feature missing"
+        elif not ok[i]:
+            status = "not valid here: operating point outside the identified region"
+        else:
+            status = ""
+        norm = float("nan")
+        if valid and config is not None:
+            norm = float(np.sqrt(np.mean(((R[i] - c) / np.asarray(config.scale)) ** 2)))
+        out.append(ResidualVector(model_id=model_id, index=fv.index, t=fv.t_end, valid=valid,
+                                  status=status, names=RESIDUALS, units=RESIDUAL_UNITS,
+                                  values=R[i].copy(), norm=norm))
+    return out
+
+
+def run_symptoms(models: ReferenceModelSet, config: SymptomConfig,
+                 features: Sequence[FeatureVector]) -> list[SymptomState]:
+    """Nominal residuals and debounced symptoms for a stream of feature vectors (offline)."""
+    gen = SymptomGenerator(config=config)
+    return [gen.update(rv) for rv in stream_residuals(models, features, config=config)]

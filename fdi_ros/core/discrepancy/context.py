@@ -1,0 +1,175 @@
+"""What an effect sees of one channel: measured values, baseline prediction, explanations.
+
+A :class:`ChannelContext` is built from a :class:`~fdi_ros.core.measured.Measured` record and a
+baseline model. It holds everything a catalogue effect may regress on: time, segments, crank
+angle, the candidate explanation columns (measured signals the model does not use, and smoothed
+time derivatives of all measured signals), the operating-region coordinates of the model
+(axes of the error map), and the leak regressor (compressible orifice flow per unit area).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fdi_ros.core.measured import Measured
+
+R_AIR = 287.06  # J/(kg K)
+KAPPA_AIR = 1.4
+
+
+@dataclass(frozen=True)
+class LeakSpec:
+    """Where a leak between the measured flow channel and the surroundings would sit.
+
+    The flow channel is metered upstream of the leak, the model predicts the flow the engine
+    takes in; a leak then changes the metered flow by the flow through the orifice:
+    ``y = yhat - CdA * q(p_amb -> p_in)``, q > 0 into the system (a throttled gasoline manifold
+    sucks air in; a boosted diesel charge-air path blows air out, q < 0).
+
+    Attributes
+    ----------
+    channel : the flow channel (e.g. "maf").
+    p_in, T_in : signal names of the pressure [Pa] and temperature [K] inside, at the leak.
+    p_amb, T_amb : signal name or constant of the surroundings [Pa], [K].
+    flow_scale : channel units per kg/s (3600 for kg/h).
+    cd : discharge coefficient used to turn the effective area Cd*A into a geometric area.
+    """
+
+    channel: str
+    p_in: str
+    T_in: str
+    p_amb: str | float = 101325.0
+    T_amb: str | float = 293.15
+    flow_scale: float = 1.0
+    cd: float = 0.7
+
+    def to_dict(self) -> dict:
+        return dict(channel=self.channel, p_in=self.p_in, T_in=self.T_in, p_amb=self.p_amb,
+                    T_amb=self.T_amb, flow_scale=self.flow_scale, cd=self.cd)
+
+
+def orifice_flux(p_up: np.ndarray, T_up: np.ndarray, p_down: np.ndarray,
+                 kappa: float = KAPPA_AIR) -> np.ndarray:
+    """Isentropic mass flux through a unit-area orifice [kg/(s m^2)], p_up >= p_down.
+
+    ``q = p_up / sqrt(R T_up) * Psi(p_down / p_up)`` with
+    ``Psi(pr) = sqrt(2 kappa / (kappa - 1) * (pr^(2/kappa) - pr^((kappa+1)/kappa)))``,
+    held at its critical value below the choking ratio ``(2/(kappa+1))^(kappa/(kappa-1))``.
+    """
+    pr_crit = (2.0 / (kappa + 1.0)) ** (kappa / (kappa - 1.0))
+    pr = np.clip(p_down / p_up, pr_crit, 1.0)
+    psi = np.sqrt(np.maximum(2.0 * kappa / (kappa - 1.0)
+                             * (pr ** (2.0 / kappa) - pr ** ((kappa + 1.0) / kappa)), 0.0))
+    return p_up / np.sqrt(R_AIR * T_up) * psi
+
+
+def leak_regressor(data: Measured, spec: LeakSpec) -> np.ndarray:
+    """Signed orifice flux from the surroundings into the system [kg/(s m^2)] per sample."""
+
+    def sig(v: str | float) -> np.ndarray:
+        if isinstance(v, str):
+            return np.asarray(data[v], dtype=float)
+        return np.full(data.n_samples, float(v))
+
+    p_in, T_in, p_a, T_a = sig(spec.p_in), sig(spec.T_in), sig(spec.p_amb), sig(spec.T_amb)
+    inflow = p_a >= p_in
+    q = np.where(inflow, orifice_flux(p_a, T_a, p_in), -orifice_flux(p_in, T_in, p_a))
+    return q
+
+
+def smooth_derivative(x: np.ndarray, t: np.ndarray, segment: np.ndarray,
+                      window_s: float) -> np.ndarray:
+    """d x / d t per segment after a centred moving average of about ``window_s``.
+
+    NaN samples stay NaN (and make their neighbourhood NaN): a derivative across a missing
+    sample would be a guess.
+    """
+    out = np.full_like(x, np.nan, dtype=float)
+    for s in np.unique(segment):
+        idx = np.flatnonzero(segment == s)
+        if idx.size < 3:
+            continue
+        ts, xs = t[idx], x[idx]
+        dt = float(np.median(np.diff(ts)))
+        w = max(1, int(round(window_s / dt)))
+        if w > 1 and idx.size > w:
+            k = np.ones(w) / w
+            xs = np.convolve(xs, k, mode="same")
+            # the ends of a "same" convolution average zeros in: drop them
+            xs[: w // 2] = np.nan
+            xs[idx.size - (w - 1 - w // 2):] = np.nan
+        out[idx] = np.gradient(xs, ts)
+    return out
+
+
+@dataclass
+class ChannelContext:
+    """Inputs of the effect fits for one channel (see the module docstring)."""
+
+    channel: str
+    unit: str
+    t: np.ndarray
+    y: np.ndarray
+    yhat: np.ndarray
+    segment: np.ndarray
+    columns: dict[str, np.ndarray] = field(default_factory=dict)
+    region: dict[str, np.ndarray] = field(default_factory=dict)
+    alpha: np.ndarray | None = None
+    leak_q: np.ndarray | None = None
+    leak: LeakSpec | None = None
+    t_ref: float = 0.0
+
+    @property
+    def n(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def ok(self) -> np.ndarray:
+        """Samples where both measurement and prediction exist."""
+        return np.isfinite(self.y) & np.isfinite(self.yhat)
+
+    @property
+    def dt(self) -> float:
+        return float(np.median(np.diff(self.t)))
+
+
+def build_contexts(data: Measured, model, *, derivative_window_s: float = 0.25,
+                   t_ref: float | None = None) -> dict[str, ChannelContext]:
+    """One context per channel the model predicts and the data measures.
+
+    ``model`` follows :class:`fdi_ros.core.discrepancy.model.BaselineModel`. Candidate columns
+    are the measured signals the model does not use (minus the channel itself) and ``d/dt`` of
+    every measured signal (lags and filling dynamics show there).
+    """
+    pred = model.predict(data)
+    region = model.region(data)
+    used = set(model.inputs)
+    derivs = {f"d/dt {k}": smooth_derivative(v, data.t, data.segment, derivative_window_s)
+              for k, v in data.signals.items() if np.isfinite(v).mean() > 0.5
+              and np.nanstd(v) > 0}
+    out = {}
+    for ch in model.channels:
+        if ch not in data.signals:
+            continue
+        cols = {k: v for k, v in data.signals.items()
+                if k not in used and k != ch and np.isfinite(v).mean() > 0.5
+                and np.nanstd(v) > 0}
+        cols.update({k: v for k, v in derivs.items() if k != f"d/dt {ch}"})
+        spec = next((s for s in getattr(model, "leaks", ()) if s.channel == ch), None)
+        q = None
+        if spec is not None:
+            try:
+                q = leak_regressor(data, spec) * spec.flow_scale
+            except KeyError:
+                spec, q = None, None
+        out[ch] = ChannelContext(channel=ch, unit=data.units.get(ch, ""), t=data.t,
+                                 y=np.asarray(data[ch], float), yhat=np.asarray(pred[ch], float),
+                                 segment=data.segment, columns=cols, region=region,
+                                 alpha=data.alpha, leak_q=q, leak=spec,
+                                 t_ref=float(data.t[0] if t_ref is None else t_ref))
+    if not out:
+        raise ValueError(f"the measured data has none of the model's channels {model.channels} "
+                         f"(signals: {sorted(data.signals)})")
+    return out

@@ -1,0 +1,497 @@
+"""The catalogue of model deficiencies: each effect is a parametric model extension.
+
+An effect maps the current prediction ``base`` of one channel to an extended prediction
+``apply(ctx, base, params)``; ``fit(ctx, base, train)`` identifies its parameters on the
+training samples only (boolean mask), so that it can be evaluated on held-out blocks.
+
+=====================  ===================================================  ===============
+id                     extension (y: measured, yhat: model)                 parameters
+=====================  ===================================================  ===============
+``offset``             y = yhat + b [* 1(t >= t_on)]                        offset, onset_s
+``gain_error``         y = yhat * (g [if t >= t_on]; 1 before)              gain, onset_s
+``drift``              y = yhat + rate * (t - t_ref)                        rate_per_s
+``sensor_lag``         y = first-order lag of yhat, tau dy/dt + y = yhat    tau_s
+``dead_time``          y(t) = yhat(t - d)                                   delay_s
+``input_dependence``   y = yhat + c1 z + c2 (z^2 - 1), z = (x - m) / s     input, coef
+``local_region``       y = yhat + b inside a box of the model's inputs     region, offset
+``leak``               y = yhat - CdA q(p_amb -> p) [* 1(t >= t_on)]        area_mm2, ...
+``missing_harmonic``   y = yhat + A cos(2 pi k alpha / 180 deg + phi)       order, amplitude
+=====================  ===================================================  ===============
+
+``order`` k counts multiples of the 180 deg CA fundamental of a four-cylinder engine (k = 0.5 is
+one event per revolution). The leak flux q is the isentropic orifice flow per unit area
+(:func:`fdi_ros.core.discrepancy.context.orifice_flux`); CdA is constrained to be >= 0.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+from scipy.signal import lfilter
+
+from fdi_ros.core.discrepancy.context import ChannelContext
+
+CATALOGUE = ("input_dependence", "missing_harmonic", "sensor_lag", "dead_time", "gain_error",
+             "offset", "drift", "leak", "local_region")
+
+
+def _ffill(x: np.ndarray) -> np.ndarray:
+    """Forward-fill NaN (then back-fill the head) so recursive filters can run through."""
+    ok = np.isfinite(x)
+    if ok.all():
+        return x
+    if not ok.any():
+        return np.zeros_like(x)
+    idx = np.where(ok, np.arange(x.size), 0)
+    np.maximum.accumulate(idx, out=idx)
+    y = x[idx]
+    y[: int(np.argmax(ok))] = x[int(np.argmax(ok))]
+    return y
+
+
+def lowpass(x: np.ndarray, t: np.ndarray, segment: np.ndarray, tau_s: float) -> np.ndarray:
+    """First-order lag ``tau dy/dt + y = x`` per segment (zero-order-hold discretisation)."""
+    out = np.empty_like(x, dtype=float)
+    for s in np.unique(segment):
+        idx = np.flatnonzero(segment == s)
+        xs = _ffill(x[idx])
+        dt = float(np.median(np.diff(t[idx]))) if idx.size > 1 else 1.0
+        a = math.exp(-dt / max(tau_s, 1e-12))
+        ys, _ = lfilter([1.0 - a], [1.0, -a], xs, zi=[a * xs[0]])
+        out[idx] = ys
+    out[~np.isfinite(x)] = np.nan
+    return out
+
+
+def delay(x: np.ndarray, t: np.ndarray, segment: np.ndarray, delay_s: float) -> np.ndarray:
+    """``x(t - d)`` per segment by linear interpolation (held at the segment's first value)."""
+    out = np.empty_like(x, dtype=float)
+    for s in np.unique(segment):
+        idx = np.flatnonzero(segment == s)
+        xs = _ffill(x[idx])
+        out[idx] = np.interp(t[idx] - delay_s, t[idx], xs)
+    out[~np.isfinite(x)] = np.nan
+    return out
+
+
+def _train_mask(ctx: ChannelContext, base: np.ndarray, train: np.ndarray,
+                *extra: np.ndarray) -> np.ndarray:
+    m = train & np.isfinite(ctx.y) & np.isfinite(base)
+    for e in extra:
+        m &= np.isfinite(e)
+    return m
+
+
+def _fit_scalar(r: np.ndarray, g: np.ndarray, t: np.ndarray, m: np.ndarray, *, onset: bool,
+                nonneg: bool, max_grid: int = 300) -> tuple[float, float | None]:
+    """Least-squares ``r ~ beta * g * 1(t >= t_on)``; ``t_on`` searched when ``onset``.
+
+    Returns (beta, t_on or None). Reverse cumulative sums make the onset scan one pass.
+    """
+    idx = np.flatnonzero(m)
+    if idx.size < 3:
+        return 0.0, None
+    rg, gg = r[idx] * g[idx], g[idx] ** 2
+    if not onset:
+        den = gg.sum()
+        beta = rg.sum() / den if den > 0 else 0.0
+        return (max(beta, 0.0) if nonneg else beta), None
+    srg = np.cumsum(rg[::-1])[::-1]
+    sgg = np.cumsum(gg[::-1])[::-1]
+    min_after = max(20, idx.size // 50)
+    last = idx.size - min_after
+    if last <= 0:
+        return 0.0, None
+    pos = np.unique(np.linspace(0, last, min(max_grid, last + 1)).astype(int))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gain = np.where(sgg[pos] > 0, srg[pos] ** 2 / sgg[pos], 0.0)
+    if nonneg:
+        gain = np.where(srg[pos] > 0, gain, 0.0)
+    k = int(pos[int(np.argmax(gain))])
+    beta = srg[k] / sgg[k] if sgg[k] > 0 else 0.0
+    if nonneg:
+        beta = max(beta, 0.0)
+    return float(beta), (None if k == 0 else float(t[idx[k]]))
+
+
+def _step(t: np.ndarray, onset: float | None) -> np.ndarray:
+    return np.ones_like(t) if onset is None else (t >= onset).astype(float)
+
+
+@dataclass(frozen=True)
+class Effect:
+    """Base of the catalogue effects (one candidate extension of one channel)."""
+
+    id = ""
+
+    @property
+    def label(self) -> str:
+        return self.id
+
+    @property
+    def n_params(self) -> int:
+        return 1
+
+    def fit(self, ctx: ChannelContext, base: np.ndarray, train: np.ndarray) -> dict:
+        raise NotImplementedError
+
+    def apply(self, ctx: ChannelContext, base: np.ndarray, params: dict) -> np.ndarray:
+        raise NotImplementedError
+
+    def to_dict(self) -> dict:
+        d = {"effect": self.id}
+        d.update({k: getattr(self, k) for k in self.__dataclass_fields__})
+        return d
+
+
+@dataclass(frozen=True)
+class Offset(Effect):
+    onset: bool = False
+    id = "offset"
+
+    @property
+    def label(self) -> str:
+        return "offset after onset" if self.onset else "offset"
+
+    @property
+    def n_params(self) -> int:
+        return 2 if self.onset else 1
+
+    def fit(self, ctx, base, train):
+        m = _train_mask(ctx, base, train)
+        b, t_on = _fit_scalar(ctx.y - base, np.ones_like(base), ctx.t, m, onset=self.onset,
+                              nonneg=False)
+        return {"offset": b, "onset_s": t_on}
+
+    def apply(self, ctx, base, params):
+        return base + params["offset"] * _step(ctx.t, params.get("onset_s"))
+
+
+@dataclass(frozen=True)
+class GainError(Effect):
+    onset: bool = False
+    id = "gain_error"
+
+    @property
+    def label(self) -> str:
+        return "gain error after onset" if self.onset else "gain error"
+
+    @property
+    def n_params(self) -> int:
+        return 2 if self.onset else 1
+
+    def fit(self, ctx, base, train):
+        m = _train_mask(ctx, base, train)
+        b, t_on = _fit_scalar(ctx.y - base, base, ctx.t, m, onset=self.onset, nonneg=False)
+        return {"gain": 1.0 + b, "onset_s": t_on}
+
+    def apply(self, ctx, base, params):
+        return base * (1.0 + (params["gain"] - 1.0) * _step(ctx.t, params.get("onset_s")))
+
+
+@dataclass(frozen=True)
+class Drift(Effect):
+    id = "drift"
+
+    def fit(self, ctx, base, train):
+        m = _train_mask(ctx, base, train)
+        rate, _ = _fit_scalar(ctx.y - base, ctx.t - ctx.t_ref, ctx.t, m, onset=False,
+                              nonneg=False)
+        return {"rate_per_s": rate, "t_ref_s": ctx.t_ref}
+
+    def apply(self, ctx, base, params):
+        return base + params["rate_per_s"] * (ctx.t - params["t_ref_s"])
+
+
+def _fit_1d(ctx: ChannelContext, base: np.ndarray, m: np.ndarray, transform, lo: float,
+            hi: float, *, log: bool, n_grid: int = 24) -> tuple[float, float]:
+    """Minimise the training SSE of ``transform(value)`` over [lo, hi]: grid, then Brent."""
+
+    def sse(v: float) -> float:
+        e = ctx.y[m] - transform(v)[m]
+        return float(np.dot(e, e)) if np.isfinite(e).all() else np.inf
+
+    grid = np.geomspace(lo, hi, n_grid) if log else np.linspace(lo, hi, n_grid)
+    costs = np.array([sse(v) for v in grid])
+    k = int(np.argmin(costs))
+    a, b = grid[max(k - 1, 0)], grid[min(k + 1, n_grid - 1)]
+    if b > a:
+        res = minimize_scalar(sse, bounds=(a, b), method="bounded",
+                              options={"xatol": (b - a) * 1e-3})
+        if res.fun < costs[k]:
+            return float(res.x), float(res.fun)
+    return float(grid[k]), float(costs[k])
+
+
+@dataclass(frozen=True)
+class SensorLag(Effect):
+    id = "sensor_lag"
+    max_tau_s: float = 5.0
+
+    def _range(self, ctx):
+        dur = ctx.t[-1] - ctx.t[0]
+        return 0.2 * ctx.dt, max(min(self.max_tau_s, dur / 10.0), ctx.dt)
+
+    def fit(self, ctx, base, train):
+        m = _train_mask(ctx, base, train)
+        lo, hi = self._range(ctx)
+        tau, _ = _fit_1d(ctx, base, m, lambda v: lowpass(base, ctx.t, ctx.segment, v), lo, hi,
+                         log=True)
+        return {"tau_s": tau}
+
+    def apply(self, ctx, base, params):
+        return lowpass(base, ctx.t, ctx.segment, params["tau_s"])
+
+
+@dataclass(frozen=True)
+class DeadTime(Effect):
+    id = "dead_time"
+    max_delay_s: float = 2.0
+
+    def fit(self, ctx, base, train):
+        m = _train_mask(ctx, base, train)
+        dur = ctx.t[-1] - ctx.t[0]
+        hi = max(min(self.max_delay_s, dur / 20.0), 2 * ctx.dt)
+        d, _ = _fit_1d(ctx, base, m, lambda v: delay(base, ctx.t, ctx.segment, v), 0.0, hi,
+                       log=False, n_grid=int(min(60, max(12, hi / ctx.dt + 1))))
+        return {"delay_s": d}
+
+    def apply(self, ctx, base, params):
+        return delay(base, ctx.t, ctx.segment, params["delay_s"])
+
+
+@dataclass(frozen=True)
+class InputDependence(Effect):
+    """The residual varies with a measured column x: ``c1 z + c2 (z^2 - <z^2>)``.
+
+    ``z = (x - mean) / std`` over the training samples, and the quadratic term is centred too,
+    so the correction has zero training mean: a constant part is left to ``offset`` and the
+    name says what varies with what.
+    """
+
+    column: str = ""
+    degree: int = 2
+    id = "input_dependence"
+
+    @property
+    def label(self) -> str:
+        return f"input_dependence on {self.column}"
+
+    @property
+    def n_params(self) -> int:
+        return self.degree
+
+    def _basis(self, x, center, scale, sq_mean):
+        z = (x - center) / scale
+        cols = [z] + ([z ** 2 - sq_mean] if self.degree >= 2 else [])
+        return np.stack(cols, axis=1)
+
+    def fit(self, ctx, base, train):
+        x = ctx.columns[self.column]
+        m = _train_mask(ctx, base, train, x)
+        if m.sum() < 10 * self.degree:
+            return {"input": self.column, "center": 0.0, "scale": 1.0, "sq_mean": 0.0,
+                    "coef": [0.0] * self.degree}
+        center = float(np.mean(x[m]))
+        scale = float(np.std(x[m])) or 1.0
+        A = self._basis(x[m], center, scale, 1.0)
+        coef, *_ = np.linalg.lstsq(A, ctx.y[m] - base[m], rcond=None)
+        return {"input": self.column, "center": center, "scale": scale, "sq_mean": 1.0,
+                "coef": [float(c) for c in coef]}
+
+    def apply(self, ctx, base, params):
+        x = ctx.columns[params["input"]]
+        corr = self._basis(x, params["center"], params["scale"],
+                           params["sq_mean"]) @ np.asarray(params["coef"])
+        # where the explaining column is missing, the extension falls back to the model
+        return base + np.where(np.isfinite(corr), corr, 0.0)
+
+
+@dataclass(frozen=True)
+class Leak(Effect):
+    onset: bool = False
+    id = "leak"
+
+    @property
+    def label(self) -> str:
+        return "leak after onset" if self.onset else "leak"
+
+    @property
+    def n_params(self) -> int:
+        return 2 if self.onset else 1
+
+    def fit(self, ctx, base, train):
+        q = ctx.leak_q
+        m = _train_mask(ctx, base, train, q)
+        cda, t_on = _fit_scalar(ctx.y - base, -q, ctx.t, m, onset=self.onset, nonneg=True)
+        cd = ctx.leak.cd
+        area = cda / cd * 1e6
+        return {"cda_mm2": cda * 1e6, "area_mm2": area, "cd": cd,
+                "diameter_mm": math.sqrt(4.0 * area / math.pi), "onset_s": t_on}
+
+    def apply(self, ctx, base, params):
+        corr = params["cda_mm2"] * 1e-6 * ctx.leak_q * _step(ctx.t, params.get("onset_s"))
+        return base - np.where(np.isfinite(corr), corr, 0.0)
+
+
+@dataclass(frozen=True)
+class MissingHarmonic(Effect):
+    orders: tuple[float, ...] = tuple(np.arange(0.5, 8.01, 0.5))
+    id = "missing_harmonic"
+
+    @property
+    def n_params(self) -> int:
+        return 3
+
+    @staticmethod
+    def _basis(alpha, order):
+        th = 2.0 * np.pi * order * alpha / 180.0
+        return np.stack([np.cos(th), np.sin(th)], axis=1)
+
+    def fit(self, ctx, base, train):
+        m = _train_mask(ctx, base, train, ctx.alpha)
+        r = ctx.y[m] - base[m]
+        best = (np.inf, self.orders[0], np.zeros(2))
+        for k in self.orders:
+            A = self._basis(ctx.alpha[m], k)
+            coef, *_ = np.linalg.lstsq(A, r, rcond=None)
+            e = r - A @ coef
+            sse = float(e @ e)
+            if sse < best[0]:
+                best = (sse, float(k), coef)
+        _, k, (a, b) = best
+        return {"order": k, "amplitude": float(math.hypot(a, b)),
+                "phase_deg": float(math.degrees(math.atan2(-b, a))), "a": float(a),
+                "b": float(b)}
+
+    def apply(self, ctx, base, params):
+        A = self._basis(ctx.alpha, params["order"])
+        return base + A @ np.array([params["a"], params["b"]])
+
+
+def _box_mask(region: dict[str, np.ndarray], box: dict[str, list[float]]) -> np.ndarray:
+    m = None
+    for name, (lo, hi) in box.items():
+        x = region[name]
+        k = (x >= lo) & (x < hi)
+        m = k if m is None else m & k
+    return m
+
+
+@dataclass(frozen=True)
+class LocalRegion(Effect):
+    """An offset confined to an axis-aligned box of the model's operating region.
+
+    The box comes from the training error map: quantile bins per axis, bin means tested
+    against an autocorrelation-corrected standard error, the connected cluster of significant
+    same-sign bins around the strongest one, and its bounding box.
+    """
+
+    bins: int = 6
+    z_min: float = 4.0
+    id = "local_region"
+
+    @property
+    def n_params(self) -> int:
+        return 5
+
+    def fit(self, ctx, base, train):
+        names = list(ctx.region)[:2]
+        cols = [ctx.region[n] for n in names]
+        m = _train_mask(ctx, base, train, *cols)
+        none = {"region": {}, "offset": 0.0}
+        if len(names) == 0 or m.sum() < 10 * self.bins ** len(names):
+            return none
+        r = ctx.y[m] - base[m]
+        edges = [np.unique(np.quantile(c[m], np.linspace(0, 1, self.bins + 1))) for c in cols]
+        idx = [np.clip(np.searchsorted(e, c[m], side="right") - 1, 0, len(e) - 2)
+               for e, c in zip(edges, cols)]
+        shape = tuple(len(e) - 1 for e in edges)
+        flat = np.ravel_multi_index(idx, shape)
+        cnt = np.bincount(flat, minlength=int(np.prod(shape))).reshape(shape)
+        s = np.bincount(flat, weights=r, minlength=int(np.prod(shape))).reshape(shape)
+        mean = np.where(cnt > 0, s / np.maximum(cnt, 1), 0.0)
+        # serial correlation inflates the variance of a bin mean by about (1+rho)/(1-rho)
+        rc = r - r.mean()
+        rho = float(np.clip(np.dot(rc[1:], rc[:-1]) / max(np.dot(rc, rc), 1e-300), 0.0, 0.995))
+        infl = (1 + rho) / (1 - rho)
+        se = np.std(r) * np.sqrt(infl / np.maximum(cnt, 1))
+        z = np.where(cnt >= 5, mean / np.maximum(se, 1e-300), 0.0)
+        k0 = np.unravel_index(int(np.argmax(np.abs(z))), shape)
+        if abs(z[k0]) < self.z_min:
+            return none
+        sign = np.sign(z[k0])
+        good = sign * z >= self.z_min
+        cluster = {k0}
+        stack = [k0]
+        while stack:
+            cur = stack.pop()
+            for ax in range(len(shape)):
+                for step in (-1, 1):
+                    nb = list(cur)
+                    nb[ax] += step
+                    nb = tuple(nb)
+                    if 0 <= nb[ax] < shape[ax] and good[nb] and nb not in cluster:
+                        cluster.add(nb)
+                        stack.append(nb)
+        box = {}
+        for ax, name in enumerate(names):
+            lo_i = min(c[ax] for c in cluster)
+            hi_i = max(c[ax] for c in cluster)
+            lo = -np.inf if lo_i == 0 else float(edges[ax][lo_i])
+            hi = np.inf if hi_i == shape[ax] - 1 else float(edges[ax][hi_i + 1])
+            box[name] = [lo, hi]
+        inside = _box_mask({n: c[m] for n, c in zip(names, cols)}, box)
+        off = float(r[inside].mean()) if inside.any() else 0.0
+        return {"region": box, "offset": off}
+
+    def apply(self, ctx, base, params):
+        if not params["region"]:
+            return base.copy()
+        inside = _box_mask(ctx.region, params["region"])
+        return base + params["offset"] * inside
+
+
+EFFECT_TYPES = {cls.id: cls for cls in (Offset, GainError, Drift, SensorLag, DeadTime,
+                                        InputDependence, Leak, MissingHarmonic, LocalRegion)}
+
+
+def effect_from_dict(d: dict) -> Effect:
+    """Rebuild an effect from :meth:`Effect.to_dict`."""
+    d = dict(d)
+    kind = d.pop("effect")
+    if kind not in EFFECT_TYPES:
+        raise ValueError(f"unknown effect {kind!r}; known: {sorted(EFFECT_TYPES)}")
+    if "orders" in d:
+        d["orders"] = tuple(d["orders"])
+    return EFFECT_TYPES[kind](**d)
+
+
+def candidates(ctx: ChannelContext, *, effects: tuple[str, ...] = CATALOGUE,
+               onset: bool = True) -> list[Effect]:
+    """Every candidate extension applicable to this channel's data."""
+    out: list[Effect] = []
+    for e in effects:
+        if e == "offset":
+            out += [Offset()] + ([Offset(onset=True)] if onset else [])
+        elif e == "gain_error":
+            out += [GainError()] + ([GainError(onset=True)] if onset else [])
+        elif e == "drift":
+            out.append(Drift())
+        elif e == "sensor_lag":
+            out.append(SensorLag())
+        elif e == "dead_time":
+            out.append(DeadTime())
+        elif e == "input_dependence":
+            out += [InputDependence(column=c, degree=1 if c.startswith("d/dt ") else 2)
+                    for c in ctx.columns]
+        elif e == "leak" and ctx.leak_q is not None:
+            out += [Leak()] + ([Leak(onset=True)] if onset else [])
+        elif e == "missing_harmonic" and ctx.alpha is not None:
+            out.append(MissingHarmonic())
+        elif e == "local_region" and ctx.region:
+            out.append(LocalRegion())
+    return out

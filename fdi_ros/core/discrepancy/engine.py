@@ -1,0 +1,434 @@
+"""Discrepancy discovery: fit every catalogue extension, score it on held-out blocks, rank.
+
+Procedure for each channel (greedy forward selection, at most ``max_findings`` steps):
+
+1. The valid samples are cut into contiguous blocks of equal duration (about 5 s). Block b is
+   held out in turn; the extensions are fitted on the other blocks minus a guard band of
+   ``guard_s`` on each side of b (the residuals of 20 Hz data are strongly autocorrelated, so a
+   training sample right next to the held-out block would leak its value into the test).
+2. For every candidate (every catalogue effect, every explaining column, with and without an
+   onset time) the out-of-block predictions give per block the held-out mean squared error
+   before (current model, refitted per fold) and after (current model + candidate).
+3. Significance: one-sided Wilcoxon signed-rank test on the blockwise differences ``d_b =
+   MSE_before_b - MSE_after_b`` (zero differences dropped). Blocks, not samples, are the units: within
+   a block the residuals are correlated, the blocks (several seconds, long against the
+   correlation time) are treated as independent. The p-value is Bonferroni-corrected over all
+   candidates of the step and all channels. A Diebold-Mariano test on the per-sample loss
+   differential with a Newey-West variance is reported alongside (``p_dm``).
+4. Choice: the candidate with the lowest held-out MSE; a candidate with fewer parameters
+   replaces it when its MSE is within one standard error of the best (the one-SE rule of
+   cross-validation), so an offset is not reported as a quadratic input dependence.
+5. It becomes a finding if significant and its held-out gain ``100 (1 - RMSE_after /
+   RMSE_before)`` is at least ``min_gain_pct``; it then joins the model and the next step
+   looks for what is left. Nothing significant: the verdict is ``consistent``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from fdi_ros.core.discrepancy.context import ChannelContext
+from fdi_ros.core.discrepancy.effects import CATALOGUE, Effect, candidates
+
+
+@dataclass(frozen=True)
+class DiscrepancyConfig:
+    """Settings of :func:`analyse` (keyword-only, validated).
+
+    Attributes
+    ----------
+    n_blocks : contiguous held-out blocks (and folds) per channel; default: one block per
+        ``block_s`` seconds, at least 16 and at most 60.
+    block_s : target block duration [s] (long against the residual correlation time).
+    alpha : family-wise significance level (Bonferroni over candidates and channels).
+    min_gain_pct : smallest held-out RMSE gain [%] reported as a finding.
+    max_findings : greedy steps per channel.
+    guard_s : training samples closer than this to the held-out block are dropped [s];
+        default a quarter of a block.
+    effects : catalogue ids to try.
+    onset : also try offset/gain/leak switching on at an unknown time (an abrupt fault).
+    """
+
+    n_blocks: int | None = None
+    block_s: float = 5.0
+    alpha: float = 0.05
+    min_gain_pct: float = 2.0
+    max_findings: int = 3
+    guard_s: float | None = None
+    effects: tuple[str, ...] = CATALOGUE
+    onset: bool = True
+
+    def __post_init__(self) -> None:
+        if self.n_blocks is not None and self.n_blocks < 4:
+            raise ValueError("n_blocks must be >= 4 for a paired test over blocks")
+        if not 0 < self.alpha < 1:
+            raise ValueError("alpha must be in (0, 1)")
+        if self.max_findings < 1:
+            raise ValueError("max_findings must be >= 1")
+        bad = set(self.effects) - set(CATALOGUE)
+        if bad:
+            raise ValueError(f"unknown effects {sorted(bad)}; catalogue: {CATALOGUE}")
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """Held-out score of one candidate extension in one greedy step."""
+
+    effect: str
+    label: str
+    channel: str
+    n_params: int
+    rmse_before: float
+    rmse_after: float
+    gain_pct: float
+    p_value: float
+    p_adjusted: float
+    p_dm: float
+    mse_blocks: np.ndarray = field(repr=False)
+
+
+@dataclass(frozen=True)
+class Finding:
+    """One significant model deficiency, its extension and the held-out gain."""
+
+    rank: int
+    effect: str
+    label: str
+    channel: str
+    params: dict
+    rmse_before: float
+    rmse_after: float
+    gain_pct: float
+    p_value: float
+    p_adjusted: float
+    p_dm: float
+    significant: bool
+    n_params: int
+    step: int
+
+    def to_dict(self) -> dict:
+        return _jsonable(asdict(self))
+
+
+@dataclass
+class DiscrepancyResult:
+    """Outcome of :func:`analyse` (like scipy's OptimizeResult: check ``success``)."""
+
+    findings: list[Finding]
+    candidates: list[Candidate]
+    verdict: str
+    message: str
+    success: bool
+    channels: dict[str, dict]
+    chains: dict[str, list[tuple[Effect, dict]]]
+    n_blocks: int
+    nit: int
+    seconds: float
+    config: DiscrepancyConfig
+    oof: dict[str, dict[str, np.ndarray]] = field(default_factory=dict, repr=False)
+
+    def to_dict(self) -> dict:
+        return _jsonable({
+            "verdict": self.verdict,
+            "message": self.message,
+            "success": self.success,
+            "findings": [f.to_dict() for f in self.findings],
+            "candidates": [{k: v for k, v in asdict(c).items() if k != "mse_blocks"}
+                           for c in self.candidates[:25]],
+            "channels": self.channels,
+            "held_out": {
+                "scheme": "leave-one-block-out over contiguous time blocks with guard bands",
+                "n_blocks": {ch: c.get("n_blocks") for ch, c in self.channels.items()},
+                "test": "one-sided Wilcoxon signed-rank test over the blockwise held-out MSE "
+                        "differences (blocks as "
+                        "the independent units, samples within a block are correlated), "
+                        "Bonferroni over candidates and channels; p_dm: Diebold-Mariano test "
+                        "on the per-sample loss differential with a Newey-West variance, for "
+                        "reference",
+                "alpha": self.config.alpha,
+                "min_gain_pct": self.config.min_gain_pct,
+            },
+            "seconds": self.seconds,
+        })
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.floating, float)):
+        v = float(x)
+        if np.isnan(v):
+            return None
+        if np.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        return v
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.bool_):
+        return bool(x)
+    return x
+
+
+def make_blocks(t: np.ndarray, ok: np.ndarray, n_blocks: int) -> np.ndarray:
+    """Block id per sample (-1 where not ok): equal-duration contiguous blocks."""
+    tv = t[ok]
+    edges = np.linspace(tv[0], tv[-1], n_blocks + 1)
+    blk = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, n_blocks - 1)
+    return np.where(ok, blk, -1)
+
+
+def fit_chain(ctx: ChannelContext, chain: list[Effect], train: np.ndarray
+              ) -> tuple[np.ndarray, list[dict]]:
+    """Fit the effects one after the other on ``train``; the full-length prediction."""
+    pred = ctx.yhat
+    params = []
+    for eff in chain:
+        p = eff.fit(ctx, pred, train)
+        pred = eff.apply(ctx, pred, p)
+        params.append(p)
+    return pred, params
+
+
+def apply_chain(ctx: ChannelContext, chain: list[tuple[Effect, dict]]) -> np.ndarray:
+    pred = ctx.yhat
+    for eff, p in chain:
+        pred = eff.apply(ctx, pred, p)
+    return pred
+
+
+def _block_mse(err2: np.ndarray, blk: np.ndarray, n_blocks: int) -> np.ndarray:
+    ok = blk >= 0
+    s = np.bincount(blk[ok], weights=err2[ok], minlength=n_blocks)
+    c = np.bincount(blk[ok], minlength=n_blocks)
+    return np.where(c > 0, s / np.maximum(c, 1), np.nan)
+
+
+def paired_p(before: np.ndarray, after: np.ndarray) -> float:
+    """One-sided p-value that the held-out MSE is lower after: Wilcoxon signed-rank over blocks.
+
+    Ranks, not magnitudes: a few blocks with large transients must not decide the test, and an
+    effect present in part of the record only (a fault after its onset) leaves the other blocks
+    exactly unchanged; those zero differences carry no information and are dropped.
+    """
+    d = (before - after)[np.isfinite(before) & np.isfinite(after)]
+    scale = max(float(np.nanmax(np.abs(before))), 1e-300) if before.size else 1.0
+    d = d[np.abs(d) > 1e-12 * scale]
+    if d.size < 3:
+        return 1.0
+    return float(stats.wilcoxon(d, alternative="greater", zero_method="wilcox").pvalue)
+
+
+def hac_bandwidth(d: np.ndarray) -> int:
+    """Bartlett bandwidth [samples] for a serially correlated series.
+
+    Three times the lag at which the sample autocorrelation first falls below 0.05 (20 Hz
+    residuals stay correlated over seconds), at least ``N^(1/3)``, at most ``N / 8``.
+    """
+    n = d.size
+    x = d - d.mean()
+    var = float(np.dot(x, x))
+    if var == 0.0:
+        return 1
+    nfft = 1 << int(np.ceil(np.log2(2 * n)))
+    f = np.fft.rfft(x, nfft)
+    acf = np.fft.irfft(f * np.conj(f), nfft)[: n // 8 + 1] / var
+    below = np.flatnonzero(acf < 0.05)
+    lag = int(below[0]) if below.size else n // 8
+    return int(np.clip(3 * lag, np.ceil(n ** (1 / 3)), max(n // 8, 1)))
+
+
+def loss_differential_p(e_before: np.ndarray, e_after: np.ndarray) -> tuple[float, int]:
+    """One-sided Diebold-Mariano test that the squared held-out error is lower after.
+
+    ``d_i = e_before_i^2 - e_after_i^2`` over the held-out samples in time order; its mean is
+    tested with a Newey-West (Bartlett) long-run variance, so the strong serial correlation of
+    the residuals is accounted for, against a t distribution with ``N / L - 1`` degrees of
+    freedom (L the bandwidth: about one independent value per bandwidth). The bandwidth comes
+    from the autocorrelation of the remaining residual (the noise process), not of ``d``
+    itself, whose mean legitimately changes where an effect switches on. Returns (p, L).
+    """
+    ok = np.isfinite(e_before) & np.isfinite(e_after)
+    d = e_before[ok] ** 2 - e_after[ok] ** 2
+    n = d.size
+    if n < 10:
+        return 1.0, 0
+    L = hac_bandwidth(e_after[ok])
+    x = d - d.mean()
+    lrv = float(np.dot(x, x)) / n
+    for k in range(1, L + 1):
+        lrv += 2.0 * (1.0 - k / (L + 1)) * float(np.dot(x[k:], x[:-k])) / n
+    if lrv <= 0.0:
+        return (0.0 if d.mean() > 0 else 1.0), L
+    tstat = d.mean() / np.sqrt(lrv / n)
+    dof = max(n / L - 1.0, 2.0)
+    return float(stats.t.sf(tstat, dof)), L
+
+
+def _nests(big: Effect, small: Effect) -> bool:
+    """True when ``small`` is a special case of ``big`` (the same effect without an onset)."""
+    return (big.id == small.id and getattr(big, "onset", False)
+            and not getattr(small, "onset", True))
+
+
+def _one_se_choice(scored: list[tuple[Effect, Candidate]], alpha: float
+                   ) -> tuple[Effect, Candidate]:
+    """Lowest held-out MSE, or a special case of it within one standard error of it.
+
+    Only nested alternatives compete on parsimony (an always-on gain error vs the same gain
+    switching on at some time); effects with different physics compete on held-out error.
+    """
+    best = min(scored, key=lambda ec: np.nanmean(ec[1].mse_blocks))
+    for eff, c in scored:
+        if not _nests(best[0], eff) or c.p_adjusted >= alpha:
+            continue
+        d = c.mse_blocks - best[1].mse_blocks
+        d = d[np.isfinite(d)]
+        if d.size >= 3 and d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size):
+            return eff, c
+    return best
+
+
+def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | None = None,
+            progress=None) -> DiscrepancyResult:
+    """Find, name, extend and score the model's discrepancies in measured data.
+
+    Parameters
+    ----------
+    contexts : per channel, measured values, baseline prediction and explanations
+        (:func:`fdi_ros.core.discrepancy.context.build_contexts`).
+    config : settings; see :class:`DiscrepancyConfig`.
+    progress : optional callable(str) for status lines.
+
+    Returns
+    -------
+    DiscrepancyResult with the ranked findings (by held-out gain), the step-1 candidate table,
+    the verdict ("consistent" when no finding is significant, else "discrepant"), per channel
+    the baseline RMSE, and the fitted extension chains (refitted on all valid samples).
+    """
+    cfg = config or DiscrepancyConfig()
+    t0 = time.perf_counter()
+    findings: list[Finding] = []
+    table: list[Candidate] = []
+    chains: dict[str, list[tuple[Effect, dict]]] = {}
+    summary: dict[str, dict] = {}
+    oof: dict[str, dict[str, np.ndarray]] = {}
+    n_channels = len(contexts)
+    nit = 0
+    for ch, ctx in contexts.items():
+        ok = ctx.ok
+        n_ok = int(ok.sum())
+        info = {"unit": ctx.unit, "n_samples": ctx.n, "n_valid": n_ok,
+                "n_masked": ctx.n - n_ok}
+        summary[ch] = info
+        chains[ch] = []
+        tv = ctx.t[ok]
+        nb = cfg.n_blocks or int(np.clip(round((tv[-1] - tv[0]) / cfg.block_s), 16, 60))
+        info["n_blocks"] = nb
+        if n_ok < 20 * nb:
+            info["status"] = f"too few valid samples ({n_ok}) for {nb} blocks"
+            continue
+        blk = make_blocks(ctx.t, ok, nb)
+        blen = (tv[-1] - tv[0]) / nb
+        guard = 0.25 * blen if cfg.guard_s is None else cfg.guard_s
+        bounds = [(ctx.t[blk == b].min(), ctx.t[blk == b].max()) if np.any(blk == b)
+                  else (np.nan, np.nan) for b in range(nb)]
+        trains = [ok & ~((ctx.t >= lo - guard) & (ctx.t <= hi + guard)) for lo, hi in bounds]
+        tests = [blk == b for b in range(nb)]
+        resid0 = ctx.y - ctx.yhat
+        info["rmse_baseline"] = float(np.sqrt(np.mean(resid0[ok] ** 2)))
+        info["bias_baseline"] = float(np.mean(resid0[ok]))
+        cands = candidates(ctx, effects=cfg.effects, onset=cfg.onset)
+        chain: list[Effect] = []
+        for step in range(cfg.max_findings):
+            nit += 1
+            bases = []
+            before = np.full(ctx.n, np.nan)
+            for tr, te in zip(trains, tests):
+                pred, _ = fit_chain(ctx, chain, tr)
+                bases.append(pred)
+                before[te] = pred[te]
+            mse_b = _block_mse((ctx.y - before) ** 2, blk, nb)
+            rmse_b = float(np.sqrt(np.nanmean((ctx.y - before)[ok] ** 2)))
+            if step == 0:
+                oof[ch] = {"before": before}
+            scored: list[tuple[Candidate, np.ndarray]] = []
+            for eff in cands:
+                if any(e.label == eff.label for e in chain):
+                    continue
+                after = np.full(ctx.n, np.nan)
+                try:
+                    for base, tr, te in zip(bases, trains, tests):
+                        p = eff.fit(ctx, base, tr)
+                        after[te] = eff.apply(ctx, base, p)[te]
+                except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+                    continue
+                # a candidate that cannot predict a sample leaves the model's value there
+                after = np.where(np.isfinite(after), after, before)
+                mse_a = _block_mse((ctx.y - after) ** 2, blk, nb)
+                rmse_a = float(np.sqrt(np.nanmean((ctx.y - after)[ok] ** 2)))
+                p = paired_p(mse_b, mse_a)
+                p_dm, _ = loss_differential_p(ctx.y - before, ctx.y - after)
+                scored.append((Candidate(effect=eff.id, label=eff.label, channel=ch,
+                                         n_params=eff.n_params, rmse_before=rmse_b,
+                                         rmse_after=rmse_a,
+                                         gain_pct=100.0 * (1.0 - rmse_a / rmse_b),
+                                         p_value=p, p_adjusted=p,
+                                         p_dm=p_dm,
+                                         mse_blocks=mse_a), after))
+            if not scored:
+                break
+            m = len(scored) * n_channels
+            scored = [(Candidate(**{**c.__dict__, "p_adjusted": min(1.0, c.p_value * m)}), a)
+                      for c, a in scored]
+            if step == 0:
+                table.extend(c for c, _ in scored)
+            by_label = {e.label: e for e in cands}
+            eff, choice = _one_se_choice([(by_label[c.label], c) for c, _ in scored],
+                                         cfg.alpha)
+            sig = choice.p_adjusted < cfg.alpha and choice.gain_pct >= cfg.min_gain_pct
+            if progress:
+                progress(f"{ch} step {step + 1}: best {choice.label} gain "
+                         f"{choice.gain_pct:.1f}% p_adj {choice.p_adjusted:.2g}"
+                         f"{' (significant)' if sig else ''}")
+            if not sig:
+                break
+            chain.append(eff)
+            oof[ch][f"after_{step + 1}"] = next(a for c, a in scored if c is choice)
+            findings.append(Finding(rank=0, effect=choice.effect, label=choice.label,
+                                    channel=ch, params={}, rmse_before=choice.rmse_before,
+                                    rmse_after=choice.rmse_after, gain_pct=choice.gain_pct,
+                                    p_value=choice.p_value, p_adjusted=choice.p_adjusted,
+                                    p_dm=choice.p_dm, significant=True, n_params=choice.n_params, step=step + 1))
+        # the extension as saved: refitted on every valid sample
+        _, params = fit_chain(ctx, chain, ok)
+        chains[ch] = list(zip(chain, params))
+        for f_i, f in enumerate(findings):
+            if f.channel == ch and not f.params:
+                findings[f_i] = Finding(**{**f.__dict__, "params": params[f.step - 1]})
+        final = apply_chain(ctx, chains[ch])
+        info["rmse_extended_in_sample"] = float(np.sqrt(np.mean((ctx.y - final)[ok] ** 2)))
+    findings.sort(key=lambda f: -f.gain_pct)
+    findings = [Finding(**{**f.__dict__, "rank": i + 1}) for i, f in enumerate(findings)]
+    table.sort(key=lambda c: -c.gain_pct)
+    if findings:
+        verdict = "discrepant"
+        top = findings[0]
+        msg = (f"{len(findings)} significant finding(s); top: {top.label} on {top.channel} "
+               f"(held-out RMSE -{top.gain_pct:.1f}%)")
+    else:
+        verdict = "consistent"
+        msg = ("no extension improves the held-out error significantly: the model is "
+               "consistent with the data")
+    return DiscrepancyResult(findings=findings, candidates=table, verdict=verdict, message=msg,
+                             success=True, channels=summary, chains=chains,
+                             n_blocks=max([c.get("n_blocks", 0) for c in summary.values()]
+                                          or [0]), nit=nit,
+                             seconds=time.perf_counter() - t0, config=cfg, oof=oof)

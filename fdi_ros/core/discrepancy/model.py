@@ -1,0 +1,133 @@
+"""Baseline models for the analysis and the extended model it produces (save, load, predict).
+
+A baseline model is any object with
+
+* ``inputs``: measured signals it uses (the others are candidate explanations),
+* ``channels``: the signals it predicts,
+* ``predict(data: Measured) -> {channel: (N,) array}`` (NaN = no valid prediction),
+* ``region(data) -> {axis: (N,) array}``: operating-region coordinates for the error map,
+* optionally ``leaks``: :class:`~fdi_ros.core.discrepancy.context.LeakSpec` per flow channel,
+* ``to_dict()`` with a ``type`` key registered in :data:`BASELINE_TYPES` (for saving).
+
+:class:`ExtendedModel` is a baseline plus, per channel, the chain of catalogue effects found
+by the analysis with their fitted parameters. It predicts like the baseline, is saved as JSON
+and loaded back with :meth:`ExtendedModel.load`.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fdi_ros.core.discrepancy.context import build_contexts
+from fdi_ros.core.discrepancy.effects import Effect, effect_from_dict
+from fdi_ros.core.measured import Measured
+
+FORMAT = "fdi_ros.discrepancy.extended_model/1"
+
+
+def _baseline_types() -> dict[str, Any]:
+    from fdi_ros.core.meanvalue import SpeedDensityModel
+
+    types: dict[str, Any] = {"speed_density": SpeedDensityModel}
+    try:  # the diesel reference model, when that module is present
+        from fdi_ros.core.discrepancy.diesel import DieselSpeedDensity
+        types["diesel_speed_density"] = DieselSpeedDensity
+    except ImportError:
+        pass
+    return types
+
+
+def baseline_from_dict(d: dict):
+    """Rebuild a baseline model saved with its ``to_dict()``."""
+    types = _baseline_types()
+    kind = d.get("type")
+    if kind not in types:
+        raise ValueError(f"unknown baseline model type {kind!r}; known: {sorted(types)}")
+    return types[kind].from_dict(d)
+
+
+@dataclass(frozen=True)
+class ExtendedModel:
+    """Baseline model + the effect chains of the findings (fitted parameters included)."""
+
+    baseline: Any
+    chains: dict[str, list[tuple[Effect, dict]]]
+    source: str = ""
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        return tuple(self.baseline.inputs)
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return tuple(self.baseline.channels)
+
+    @property
+    def leaks(self):
+        return getattr(self.baseline, "leaks", ())
+
+    def region(self, data: Measured):
+        return self.baseline.region(data)
+
+    def predict(self, data: Measured) -> dict[str, np.ndarray]:
+        """Baseline prediction with every fitted extension applied, per channel."""
+        ctxs = build_contexts(data, self.baseline)
+        out = {}
+        for ch, ctx in ctxs.items():
+            pred = ctx.yhat
+            for eff, params in self.chains.get(ch, []):
+                pred = eff.apply(ctx, pred, params)
+            out[ch] = pred
+        return out
+
+    def to_dict(self) -> dict:
+        from fdi_ros.core.discrepancy.engine import _jsonable
+
+        return _jsonable({
+            "format": FORMAT,
+            "type": "discrepancy_extended",
+            "source": self.source,
+            "baseline": self.baseline.to_dict(),
+            "extensions": {ch: [{"spec": e.to_dict(), "params": p} for e, p in chain]
+                           for ch, chain in self.chains.items()},
+        })
+
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.to_dict(), indent=1))
+        return path
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ExtendedModel:
+        if d.get("format") != FORMAT:
+            raise ValueError(f"not an extended model file (format {d.get('format')!r}, "
+                             f"expected {FORMAT!r})")
+
+        def params(p: dict) -> dict:
+            out = dict(p)
+            if "region" in out:  # JSON has no infinity: restore open box edges
+                out["region"] = {k: [float(v) for v in lohi] for k, lohi in
+                                 out["region"].items()}
+            return out
+
+        chains = {ch: [(effect_from_dict(x["spec"]), params(x["params"])) for x in lst]
+                  for ch, lst in d["extensions"].items()}
+        return cls(baseline=baseline_from_dict(d["baseline"]), chains=chains,
+                   source=d.get("source", ""))
+
+    @classmethod
+    def load(cls, path: str | Path) -> ExtendedModel:
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"extended model {path} not found")
+        try:
+            d = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: not valid JSON ({exc})") from None
+        return cls.from_dict(d)

@@ -1,0 +1,183 @@
+"""Speed-density mean-value intake model (used for the LiU-ICE gasoline engine data).
+
+The air mass flow an engine of displacement V_D draws at speed n from a manifold at pressure p
+and temperature T is that of an ideal displacement pump times the volumetric efficiency:
+
+    m_air = eta_V(n, p) * n / (60 * 2) * V_D * p / (R * T)          [kg/s], n in rpm
+
+(one intake stroke per cylinder every two revolutions). ``eta_V`` is a low-order polynomial in
+normalised (n, p) whose coefficients are identified by linear least squares *in flow space*
+(``m_meas = sum_j c_j * phi_j(n, p) * m_th``), so that the operating points with large flow
+weigh as they do in the residual. A flow meter upstream of the compressor, intercooler and
+manifold also sees the air stored in those volumes while their pressure changes; with
+``storage`` signals p_j the model adds the filling flows (isothermal)
+
+    m_meas = m_air + sum_j V_j / (R T) * d p_j / d t
+
+with the volumes V_j identified in the same least-squares problem. Operating points outside the identified region (with a
+margin) are predicted as NaN: the analysis masks them instead of extrapolating a polynomial.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fdi_ros.core.discrepancy.context import R_AIR, LeakSpec, smooth_derivative
+from fdi_ros.core.measured import Measured
+
+
+def _basis(nz: np.ndarray, pz: np.ndarray, degree: int) -> np.ndarray:
+    cols = [nz ** i * pz ** j for i in range(degree + 1) for j in range(degree + 1 - i)]
+    return np.stack(cols, axis=-1)
+
+
+@dataclass(frozen=True)
+class SpeedDensityModel:
+    """Speed-density air-flow model ``maf = eta_V(n, p) * m_th(n, p, T)``.
+
+    Attributes
+    ----------
+    displacement_l : V_D [L].
+    n, p, T, channel : signal names of speed [rpm], manifold pressure [Pa], manifold
+        temperature [K] and the metered air flow.
+    flow_scale : channel units per kg/s (3600 for kg/h).
+    coef : polynomial coefficients of eta_V (see :func:`fit`), empty before fitting.
+    n_range, p_range : identified region [rpm], [Pa].
+    leak_p_amb, leak_T_amb : signal names (or constants) of the surroundings for the leak
+        candidate.
+    """
+
+    displacement_l: float
+    n: str = "n"
+    p: str = "p_im"
+    T: str = "T_im"
+    channel: str = "maf"
+    flow_scale: float = 3600.0
+    degree: int = 2
+    coef: tuple[float, ...] = ()
+    n_range: tuple[float, float] = (0.0, 0.0)
+    p_range: tuple[float, float] = (0.0, 0.0)
+    margin: float = 0.05
+    leak_p_amb: str | float = "p_amb"
+    leak_T_amb: str | float = "T_amb"
+    leak_cd: float = 0.7
+    storage: tuple[str, ...] = ()
+    volumes_l: tuple[float, ...] = ()
+    derivative_window_s: float = 0.25
+    kind: str = field(default="speed_density", init=False)
+
+    def __post_init__(self) -> None:
+        if not self.displacement_l > 0:
+            raise ValueError("displacement_l must be > 0")
+        if self.degree < 0 or self.degree > 4:
+            raise ValueError("degree must be in 0..4")
+
+    # --- the baseline-model interface of the discrepancy analysis -------------------------
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        return (self.n, self.p, self.T) + tuple(s for s in self.storage if s != self.p)
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return (self.channel,)
+
+    @property
+    def leaks(self) -> tuple[LeakSpec, ...]:
+        return (LeakSpec(channel=self.channel, p_in=self.p, T_in=self.T, p_amb=self.leak_p_amb,
+                         T_amb=self.leak_T_amb, flow_scale=self.flow_scale, cd=self.leak_cd),)
+
+    def region(self, data: Measured) -> dict[str, np.ndarray]:
+        return {self.n: data[self.n], self.p: data[self.p]}
+
+    def m_th(self, data: Measured) -> np.ndarray:
+        """Ideal displacement-pump flow in channel units."""
+        n, p, T = data[self.n], data[self.p], data[self.T]
+        return n / 120.0 * self.displacement_l * 1e-3 * p / (R_AIR * T) * self.flow_scale
+
+    def _z(self, data: Measured) -> tuple[np.ndarray, np.ndarray]:
+        (n0, n1), (p0, p1) = self.n_range, self.p_range
+        return ((data[self.n] - n0) / (n1 - n0), (data[self.p] - p0) / (p1 - p0))
+
+    def eta_v(self, data: Measured) -> np.ndarray:
+        if not self.coef:
+            raise ValueError("the speed-density model is not identified yet (call fit)")
+        nz, pz = self._z(data)
+        eta = _basis(nz, pz, self.degree) @ np.asarray(self.coef)
+        out = (nz < -self.margin) | (nz > 1 + self.margin) | (pz < -self.margin) | (
+            pz > 1 + self.margin)
+        return np.where(out, np.nan, eta)
+
+    def filling_regressors(self, data: Measured) -> np.ndarray:
+        """(N, len(storage)) filling flow per litre of volume, in channel units."""
+        T = data[self.T]
+        cols = [smooth_derivative(data[s], data.t, data.segment, self.derivative_window_s)
+                * 1e-3 / (R_AIR * T) * self.flow_scale for s in self.storage]
+        return np.stack(cols, axis=1) if cols else np.zeros((data.n_samples, 0))
+
+    def predict(self, data: Measured) -> dict[str, np.ndarray]:
+        m = self.eta_v(data) * self.m_th(data)
+        if self.storage:
+            m = m + self.filling_regressors(data) @ np.asarray(self.volumes_l)
+        return {self.channel: m}
+
+    # --- identification and persistence -----------------------------------------------------
+    def fit(self, data: Measured | list[Measured]) -> SpeedDensityModel:
+        """Identify eta_V by least squares in flow space on (a list of) fault-free records."""
+        recs = data if isinstance(data, list) else [data]
+        n_all = np.concatenate([r[self.n] for r in recs])
+        p_all = np.concatenate([r[self.p] for r in recs])
+        ok_all = np.isfinite(n_all) & np.isfinite(p_all)
+        n_range = (float(n_all[ok_all].min()), float(n_all[ok_all].max()))
+        p_range = (float(p_all[ok_all].min()), float(p_all[ok_all].max()))
+        if n_range[1] <= n_range[0] or p_range[1] <= p_range[0]:
+            raise ValueError("identification data must vary in speed and pressure")
+        proto = SpeedDensityModel(**{**self.to_params(), "n_range": n_range,
+                                     "p_range": p_range, "coef": (1.0,),
+                                     "volumes_l": (0.0,) * len(self.storage)})
+        rows, rhs = [], []
+        for r in recs:
+            nz, pz = proto._z(r)
+            mth = proto.m_th(r)
+            A = np.hstack([_basis(nz, pz, self.degree) * mth[:, None],
+                           self.filling_regressors(r)])
+            y = r[self.channel]
+            ok = np.isfinite(A).all(axis=1) & np.isfinite(y)
+            rows.append(A[ok])
+            rhs.append(y[ok])
+        A, y = np.concatenate(rows), np.concatenate(rhs)
+        if A.shape[0] < 10 * A.shape[1]:
+            raise ValueError(f"too few valid samples ({A.shape[0]}) to identify eta_V")
+        sol, *_ = np.linalg.lstsq(A, y, rcond=None)
+        k = sol.size - len(self.storage)
+        return SpeedDensityModel(**{**self.to_params(), "n_range": n_range, "p_range": p_range,
+                                    "coef": tuple(float(c) for c in sol[:k]),
+                                    "volumes_l": tuple(float(v) for v in sol[k:])})
+
+    def to_params(self) -> dict:
+        return dict(displacement_l=self.displacement_l, n=self.n, p=self.p, T=self.T,
+                    channel=self.channel, flow_scale=self.flow_scale, degree=self.degree,
+                    coef=tuple(self.coef), n_range=tuple(self.n_range),
+                    p_range=tuple(self.p_range), margin=self.margin,
+                    leak_p_amb=self.leak_p_amb, leak_T_amb=self.leak_T_amb,
+                    leak_cd=self.leak_cd, storage=tuple(self.storage),
+                    volumes_l=tuple(self.volumes_l),
+                    derivative_window_s=self.derivative_window_s)
+
+    def to_dict(self) -> dict:
+        d = self.to_params()
+        d["type"] = self.kind
+        for k in ("coef", "n_range", "p_range", "storage", "volumes_l"):
+            d[k] = list(d[k])
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> SpeedDensityModel:
+        d = {k: v for k, v in d.items() if k != "type"}
+        for k in ("coef", "n_range", "p_range", "volumes_l"):
+            if k in d:
+                d[k] = tuple(float(v) for v in d[k])
+        if "storage" in d:
+            d["storage"] = tuple(d["storage"])
+        return cls(**d)

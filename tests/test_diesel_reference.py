@@ -27,11 +27,11 @@ NOISE = {"eta_v": 0.003, "maf_amp": 0.5, "maf_phase": 1.0, "p2_amp": 20.0, "p2_p
 NAMES = INPUTS + OUTPUTS
 
 
-def _synthetic(n_seg, seed):
+def _synthetic(n_seg, seed, period=3000.0):
     rng = np.random.default_rng(seed)
-    # A slow sweep of speed and boost with the "low speed, high boost" corner empty.
+    # A sweep of speed and boost with the "low speed, high boost" corner empty.
     t = np.arange(n_seg)
-    n = 2400 + 1600 * np.sin(2 * np.pi * t / 3000.0) + rng.normal(0, 20, n_seg)
+    n = 2400 + 1500 * np.sin(2 * np.pi * t / period) + rng.normal(0, 20, n_seg)
     rmax = 1.3 + 1.7 * np.clip((n - 800) / 2400, 0, 1)
     r = 1.1 + (rmax - 1.1) * (0.5 + 0.5 * np.sin(2 * np.pi * t / 377.0))
     d = {"n": n, "rho2": r}
@@ -146,3 +146,44 @@ def test_stream_residuals_equal_the_per_segment_model(identified, tmp_path):
         assert (a.valid, a.status, a.index) == (b.valid, b.status, b.index)
         np.testing.assert_allclose(a.values, b.values)
         np.testing.assert_allclose(a.norm, b.norm)
+
+
+def test_fault_hypotheses_separate_faults_of_equal_signature(identified, tmp_path):
+    """Two faults that both raise r_eta only (same table signature "+,o,o,o,o") but with a
+    different shape over the operating range are told apart by their hypothesis models."""
+    from fdi_ros.core.diesel.symptoms import identify_fault_hypothesis
+
+    _, res = identified
+    clean = _synthetic(3000, 11)
+    R, valid = parity_residuals(res.models, clean)
+    cfg = calibrate_thresholds(R, valid)
+    shapes = {"flat": lambda n: 0.02 + 0 * n, "speedy": lambda n: 0.03 * (n / 2500.0) ** 3}
+
+    def faulty(shape, seed, period=3000.0):
+        d = _synthetic(3000, seed, period)
+        d["eta_v"] = d["eta_v"] - shapes[shape](d["n"])   # less air -> r_eta > 0
+        return _fvs(d)
+
+    hyp = {k: identify_fault_hypothesis(res.models, cfg, faulty(k, 20 + i), fault=k, size=1.0,
+                                        t_from=0.0, residual_names=("r_eta",), window=150)
+           for i, k in enumerate(shapes)}
+    hyp["flat"].save(tmp_path / "flat")
+    res.models.save(tmp_path)
+    (tmp_path / THRESHOLDS_FILE).write_text(json.dumps(cfg.to_dict()))
+    loaded = load_residual_model({"type": "diesel_fault_hypothesis", "path": str(tmp_path),
+                                  "hypothesis": str(tmp_path / "flat"), "window": 150},
+                                 model_id="flat")
+    assert loaded.window == 150 and loaded.fault == "flat"
+    loaded_base = load_residual_model(tmp_path, model_id="nominal")
+    assert loaded_base.model_id == "nominal"
+    for truth in shapes:
+        # Operating points that change within the estimation window (driving, not steady).
+        stream = faulty(truth, 40, period=200.0)[:1500]
+        norms = {k: [] for k in shapes}
+        for k, h in hyp.items():
+            h.reset()
+            norms[k] = np.array([h.residuals(fv).norm for fv in stream])[300:]
+        other = next(k for k in shapes if k != truth)
+        assert np.nanmedian(norms[truth]) < 0.75 * np.nanmedian(norms[other]), truth
+    assert hyp["speedy"].size_estimate > 0.5
+    del loaded

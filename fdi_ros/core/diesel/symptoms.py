@@ -369,27 +369,176 @@ def load_symptom_config(directory) -> SymptomConfig | None:
         raise ValueError(f"{path}: malformed thresholds: {exc}") from exc
 
 
+def block_rms(E: np.ndarray, block: int = 10) -> float:
+    """RMS of the block means of the rows of E (newest block complete, oldest partial).
+
+    Averaging over blocks of consecutive segments suppresses the segment noise, while blocks
+    at different operating points keep a shape mismatch visible (a single window mean would
+    hide it: a least-squares residual has zero mean along a constant direction)."""
+    E = np.atleast_2d(E)
+    k = E.shape[0]
+    edges = np.arange(k, 0, -block)[::-1]
+    starts = np.concatenate([[0], edges[:-1]])
+    means = np.array([E[a:b].mean(axis=0) for a, b in zip(starts, edges)])
+    return float(np.sqrt(np.mean(means ** 2)))
+
+
+def _z(r: np.ndarray, cfg: SymptomConfig | None) -> np.ndarray:
+    """Residuals centred and divided by their fault-free scale (comparable across models)."""
+    if cfg is None:
+        return np.full(r.shape, np.nan)
+    return (r - np.asarray(cfg.centre)) / np.asarray(cfg.scale)
+
+
 class ReferenceResidualModel:
     """The nominal bank model: parity residuals against the five reference models.
 
     ``norm`` = RMS of the residuals centred and divided by their fault-free scale (from the
-    symptom configuration), so that it compares with the fault-hypothesis models' norms.
+    symptom configuration); with ``window > 1`` the :func:`block_rms` over the last ``window``
+    valid segments, so that it compares with the fault-hypothesis models' norms.
     """
 
     def __init__(self, *, models: ReferenceModelSet, config: SymptomConfig | None = None,
-                 model_id: str = "nominal") -> None:
+                 model_id: str = "nominal", window: int = 1) -> None:
+        if int(window) < 1:
+            raise ValueError("window must be >= 1")
         self.models = models
         self.config = config
         self.model_id = model_id
+        self.window = int(window)
+        self._zbuf: deque = deque(maxlen=self.window)
 
     def reset(self) -> None:
-        """Stateless: nothing to clear."""
+        self._zbuf.clear()
 
     def residuals(self, fv: FeatureVector) -> ResidualVector:
         cfg = self.config
-        return residual_vector(self.models, fv, model_id=self.model_id,
-                               scale=cfg.scale if cfg else None,
-                               centre=cfg.centre if cfg else None)
+        rv = residual_vector(self.models, fv, model_id=self.model_id,
+                             scale=cfg.scale if cfg else None,
+                             centre=cfg.centre if cfg else None)
+        if self.window == 1 or not rv.valid or cfg is None:
+            if not rv.valid:
+                self._zbuf.clear()
+            return rv
+        self._zbuf.append(_z(rv.values, cfg))
+        return ResidualVector(**{**rv.__dict__, "norm": block_rms(np.array(self._zbuf))})
+
+
+class FaultHypothesisResidualModel:
+    """A bank model for one fault: "the nominal residuals minus what this fault explains".
+
+    The fault's effect on the (centred, normalised) residuals per unit fault size is a map of
+    the operating point, ``g(n, rho2)`` (one LOLIMOT model per residual, identified from
+    simulated or measured data with the fault present). Over the last ``window`` valid
+    segments the size is estimated by non-negative least squares,
+    ``s = max(0, sum_k g_k . z_k / sum_k g_k . g_k)``, and the model's residual is
+    ``z_k - s g_k``. A fault whose effect has the wrong shape across operating points cannot
+    be explained by any ``s``: its norm stays large. ``norm`` is :func:`block_rms` of
+    ``z - s g`` over the window plus ``penalty`` (one parameter more than the nominal model).
+    """
+
+    def __init__(self, *, models: ReferenceModelSet, config: SymptomConfig, fault: str,
+                 directions: dict[str, object], model_id: str, window: int = 40,
+                 penalty: float = 0.05) -> None:
+        if config is None:
+            raise ValueError("a fault-hypothesis model needs the fault-free residual scales")
+        if int(window) < 1:
+            raise ValueError("window must be >= 1")
+        unknown = set(directions) - set(config.names)
+        if unknown:
+            raise ValueError(f"directions for unknown residuals {sorted(unknown)}")
+        self.models, self.config, self.fault = models, config, fault
+        self.directions = directions
+        self.model_id = model_id
+        self.window = int(window)
+        self.penalty = float(penalty)
+        self._buf: deque = deque(maxlen=self.window)
+        self.size_estimate = 0.0
+
+    def reset(self) -> None:
+        self._buf.clear()
+        self.size_estimate = 0.0
+
+    def direction(self, n, rho2) -> np.ndarray:
+        """g(n, rho2): normalised residual change per unit fault size, (N, m)."""
+        X = np.column_stack([np.atleast_1d(n), np.atleast_1d(rho2)]).astype(float)
+        G = np.zeros((X.shape[0], len(self.config.names)))
+        for j, name in enumerate(self.config.names):
+            if name in self.directions:
+                G[:, j] = self.directions[name].predict(X)
+        return G
+
+    def residuals(self, fv: FeatureVector) -> ResidualVector:
+        rv = residual_vector(self.models, fv, model_id=self.model_id)
+        if not rv.valid:
+            self.reset()
+            return rv
+        z = _z(rv.values, self.config)
+        g = self.direction(fv.get("n"), fv.get("rho2"))[0]
+        self._buf.append((z, g))
+        Z = np.array([b[0] for b in self._buf])
+        G = np.array([b[1] for b in self._buf])
+        den = float(np.sum(G * G))
+        s = max(0.0, float(np.sum(G * Z)) / den) if den > 0 else 0.0
+        self.size_estimate = s
+        E = Z - s * G
+        norm = block_rms(E) + self.penalty
+        values = rv.values - s * g * np.asarray(self.config.scale)
+        return ResidualVector(**{**rv.__dict__, "values": values, "norm": norm})
+
+    def save(self, directory) -> Path:
+        import json
+
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        for name, m in self.directions.items():
+            m.save(d / f"{name}.npz")
+        (d / "hypothesis.json").write_text(json.dumps(
+            {"fault": self.fault, "directions": sorted(self.directions),
+             "window": self.window, "penalty": self.penalty}))
+        return d
+
+
+def load_directions(directory) -> tuple[str, dict[str, object], dict]:
+    import json
+
+    from fdi_ros.core.lolimot import Lolimot
+
+    d = Path(directory)
+    meta_path = d / "hypothesis.json"
+    if not meta_path.exists():
+        raise FileNotFoundError(f"no fault hypothesis in {d} (missing hypothesis.json)")
+    meta = json.loads(meta_path.read_text())
+    return meta["fault"], {k: Lolimot.load(d / f"{k}.npz") for k in meta["directions"]}, meta
+
+
+def identify_fault_hypothesis(models: ReferenceModelSet, config: SymptomConfig,
+                              features: Sequence[FeatureVector], *, fault: str, size: float,
+                              t_from: float, residual_names: Sequence[str] = RESIDUALS,
+                              max_models: int = 6, model_id: str | None = None,
+                              window: int = 40) -> FaultHypothesisResidualModel:
+    """Identify ``g(n, rho2)`` from feature vectors with the fault (of ``size``) present from
+    plant time ``t_from`` on: LOLIMOT fits of the normalised nominal residuals / size."""
+    from fdi_ros.core.lolimot import Lolimot
+
+    if not size > 0:
+        raise ValueError("fault size must be positive")
+    feats = [fv for fv in features if fv.t_start >= t_from]
+    rvs = stream_residuals(models, feats, config=config)
+    keep = [i for i, rv in enumerate(rvs) if rv.valid]
+    if len(keep) < 200:
+        raise ValueError(f"only {len(keep)} valid faulty segments: too few for {fault}")
+    Z = np.array([_z(rvs[i].values, config) for i in keep]) / size
+    X = np.array([[feats[i].get("n"), feats[i].get("rho2")] for i in keep])
+    directions = {}
+    for name in residual_names:
+        j = config.names.index(name)
+        m = Lolimot(max_models=max_models, min_samples_per_model=50)
+        m.fit(X, Z[:, j], input_names=("n", "rho2"), output_name=f"g_{name}")
+        directions[name] = m
+    return FaultHypothesisResidualModel(models=models, config=config, fault=fault,
+                                        directions=directions,
+                                        model_id=model_id or fault, window=window)
 
 
 def _register() -> None:
@@ -397,12 +546,31 @@ def _register() -> None:
 
     @register_residual_model("diesel_reference")
     def _make_reference(spec: dict, *, base_dir: Path, model_id: str) -> ReferenceResidualModel:
-        unknown = set(spec) - {"path"}
+        unknown = set(spec) - {"path", "window"}
         if unknown:
             raise ValueError(f"diesel_reference: unknown keys {sorted(unknown)}")
         d = base_dir / spec.get("path", ".")
         return ReferenceResidualModel(models=ReferenceModelSet.load(d),
-                                      config=load_symptom_config(d), model_id=model_id)
+                                      config=load_symptom_config(d), model_id=model_id,
+                                      window=int(spec.get("window", 1)))
+
+    @register_residual_model("diesel_fault_hypothesis")
+    def _make_hypothesis(spec: dict, *, base_dir: Path,
+                         model_id: str) -> FaultHypothesisResidualModel:
+        unknown = set(spec) - {"path", "hypothesis", "window", "penalty"}
+        if unknown or "hypothesis" not in spec:
+            raise ValueError("diesel_fault_hypothesis needs 'hypothesis:' (directory), "
+                             f"optional path/window/penalty; unknown keys {sorted(unknown)}")
+        d = base_dir / spec.get("path", ".")
+        cfg = load_symptom_config(d)
+        if cfg is None:
+            raise FileNotFoundError(f"{d} has no {THRESHOLDS_FILE}: identify with fault-free "
+                                    "data first")
+        fault, directions, meta = load_directions(base_dir / spec["hypothesis"])
+        return FaultHypothesisResidualModel(
+            models=ReferenceModelSet.load(d), config=cfg, fault=fault, directions=directions,
+            model_id=model_id, window=int(spec.get("window", meta.get("window", 40))),
+            penalty=float(spec.get("penalty", meta.get("penalty", 0.05))))
 
 
 _register()

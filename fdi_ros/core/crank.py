@@ -1,0 +1,456 @@
+"""Crank-synchronous front end: one feature set per 180 deg CA segment.
+
+Signal model per segment (Schwarte & Isermann 2002, eqs. 4 and 7), alpha in deg CA::
+
+    x(alpha) = mean + A cos(2 pi alpha / 180 + phi)  (+ higher orders)
+
+Segments are aligned to multiples of ``segment_deg`` of the unwrapped crank angle:
+segment j covers ``[j D, (j + 1) D]``, ``D = segment_deg``.
+
+Phase convention
+----------------
+``phi`` is returned in deg CA (180 deg CA = one period = 2 pi), wrapped to ``[-90, 90)``. A
+signal whose maximum is at ``alpha = j D + a`` has ``phi = -a`` (wrapped). Consumers that need
+another branch re-wrap with a centre (``fdi_ros.core.diesel.reference.wrap_phase``).
+
+Method
+------
+Each sample ``i`` owns the crank-angle cell between the midpoints to its neighbours. Its
+weight in segment j is the length of (cell_i intersected with segment j), so a cell that
+straddles a boundary is split between two segments. The mean and the harmonics 1..K (K =
+``n_harmonics``, default 3) are the weighted least-squares fit of
+``x = b0 + sum_k (a_k cos(k w alpha) + b_k sin(k w alpha))``, ``w = 2 pi / D``, i.e. the
+normal equations ``G beta = g`` with ``G = sum w_i phi_i phi_i^T``, ``g = sum w_i phi_i x_i``.
+For uniform sampling these weights are the trapezoid (boundaries on samples) or the rectangle
+rule (boundaries between samples); both integrate trigonometric polynomials over a whole
+period exactly, and ``G`` is diagonal. For any other sampling (non-uniform in crank angle,
+e.g. samples equidistant in time during a speed ramp) a signal made of the mean and harmonics
+up to K is still recovered exactly, because the least-squares fit reproduces any function in
+its span; components above K leak in as O(h^2) errors.
+
+Then ``A = hypot(a_1, b_1)``, ``phi = atan2(-b_1, a_1)`` (rad) -> deg CA by ``* 90 / pi``.
+
+Features (names fixed for the project)
+--------------------------------------
+``n`` rpm, ``rho2 = p2 / (R T2)`` kg/m^3, ``p2`` Pa, ``T2`` K, ``maf`` kg/h (crank-angle
+means), ``maf_amp`` kg/h, ``maf_phase`` deg CA, ``p2_amp`` Pa, ``p2_phase`` deg CA,
+``eta_v = maf / (1/2 n/60 V_D rho2)`` (maf in kg/s), then the means of ``fuel``,
+``egr_cmd``, ``swirl_cmd``, ``vgt`` when the block has them.
+
+Validity
+--------
+A segment is invalid (``valid=False``, all values NaN, ``status`` says why) when a sample in
+it is NaN/inf ("nan"), when a crank-angle step touching it is larger than ``max_gap_deg``
+("gap"), or when the samples do not cover it ("incomplete"). Crank angles that are not
+strictly increasing (unsorted, duplicates) and decreasing times raise ``ValueError``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from fdi_ros.core.types import FeatureVector, SampleBlock
+
+FEATURE_NAMES = ("n", "rho2", "p2", "T2", "maf", "maf_amp", "maf_phase", "p2_amp", "p2_phase",
+                 "eta_v")
+FEATURE_UNITS = ("rpm", "kg/m^3", "Pa", "K", "kg/h", "kg/h", "deg CA", "Pa", "deg CA", "1")
+ACTUATOR_CHANNELS = ("fuel", "egr_cmd", "swirl_cmd", "vgt")
+ACTUATOR_UNITS = {"fuel": "mg/stroke", "egr_cmd": "1", "swirl_cmd": "1", "vgt": "1"}
+REQUIRED = {"n": "rpm", "p2": "Pa", "T2": "K", "maf": "kg/h"}
+
+
+@dataclass(frozen=True)
+class CrankHarmonics:
+    """Per-segment least-squares coefficients of several channels.
+
+    Attributes
+    ----------
+    index : (S,) segment numbers j (segment j starts at ``j * segment_deg``).
+    alpha_start : (S,) [deg CA]; t_start, t_end : (S,) [s] (interpolated at the boundaries).
+    coef : (C, S, 1 + 2K) ``[b0, a_1, b_1, ..., a_K, b_K]`` per channel and segment.
+    valid : (S,) bool; status : (S,) str ("ok", "nan", "gap", "incomplete").
+    """
+
+    index: np.ndarray
+    alpha_start: np.ndarray
+    t_start: np.ndarray
+    t_end: np.ndarray
+    coef: np.ndarray
+    valid: np.ndarray
+    status: np.ndarray
+
+    def amplitude(self, k: int = 1) -> np.ndarray:
+        """(C, S) amplitude of harmonic k."""
+        return np.hypot(self.coef[..., 2 * k - 1], self.coef[..., 2 * k])
+
+    def phase_deg(self, k: int = 1, segment_deg: float = 180.0) -> np.ndarray:
+        """(C, S) phase of harmonic k in deg CA of that harmonic's period, in [-P/2, P/2)."""
+        period = segment_deg / k
+        ph = np.arctan2(-self.coef[..., 2 * k], self.coef[..., 2 * k - 1]) * period / (2 * np.pi)
+        return (ph + period / 2.0) % period - period / 2.0
+
+
+def _basis(alpha: np.ndarray, D: float, K: int) -> np.ndarray:
+    """(len(alpha), 1 + 2K) basis [1, cos(k w a), sin(k w a)] with w = 2 pi / D."""
+    th = (2.0 * np.pi / D) * np.mod(alpha, D)
+    out = np.empty((alpha.size, 1 + 2 * K))
+    out[:, 0] = 1.0
+    for k in range(1, K + 1):
+        out[:, 2 * k - 1] = np.cos(k * th)
+        out[:, 2 * k] = np.sin(k * th)
+    return out
+
+
+def _check_order(alpha: np.ndarray, t: np.ndarray | None) -> np.ndarray:
+    if alpha.ndim != 1:
+        raise ValueError("alpha must be one-dimensional")
+    if not np.all(np.isfinite(alpha)):
+        raise ValueError("crank angles must be finite (a NaN crank angle cannot be placed)")
+    d = np.diff(alpha)
+    if d.size and not np.all(d > 0):
+        bad = int(np.argmax(~(d > 0)))
+        kind = "duplicate" if d[bad] == 0 else "decreasing"
+        raise ValueError(f"crank angles must be strictly increasing: {kind} at sample {bad + 1} "
+                         f"({alpha[bad]} -> {alpha[bad + 1]} deg CA)")
+    if t is not None and t.size > 1:
+        dt = np.diff(t)
+        if not np.all(dt > 0) and np.all(np.isfinite(t)):
+            bad = int(np.argmax(~(dt > 0)))
+            raise ValueError(f"sample times must be strictly increasing (sample {bad + 1})")
+    return d
+
+
+def crank_harmonics(alpha: np.ndarray, t: np.ndarray | None, values: np.ndarray, *,
+                    segment_deg: float = 180.0, n_harmonics: int = 3,
+                    max_gap_deg: float | None = None, alpha_prev: float | None = None,
+                    first_segment: int | None = None) -> tuple[CrankHarmonics, int]:
+    """Fit mean and harmonics per complete segment (vectorised; see the module docstring).
+
+    Parameters
+    ----------
+    alpha : (N,) strictly increasing crank angles [deg CA]; t : (N,) times [s] or None.
+    values : (C, N) samples.
+    alpha_prev : crank angle of the sample just before ``alpha[0]`` (streaming context), or
+        None at the start of a record (the first cell then starts at ``alpha[0]``).
+    first_segment : first segment to report (default: the first boundary >= alpha[0]).
+    max_gap_deg : largest allowed crank-angle step (default: 3 x the median step).
+
+    Returns
+    -------
+    (harmonics, next_segment): the complete segments, and the number of the first segment
+    that is not complete yet (for streaming).
+    """
+    D = float(segment_deg)
+    K = int(n_harmonics)
+    alpha = np.asarray(alpha, dtype=float)
+    values = np.atleast_2d(np.asarray(values, dtype=float))
+    tt = None if t is None else np.asarray(t, dtype=float)
+    d = _check_order(alpha, tt)
+    N = alpha.size
+    C = values.shape[0]
+    P = 1 + 2 * K
+    if values.shape[1] != N:
+        raise ValueError("values must have one column per crank angle")
+    j0 = int(math.ceil(alpha[0] / D - 1e-12)) if first_segment is None else int(first_segment)
+    empty = CrankHarmonics(np.zeros(0, int), np.zeros(0), np.zeros(0), np.zeros(0),
+                           np.zeros((C, 0, P)), np.zeros(0, bool), np.zeros(0, dtype="<U10"))
+    if N < 2:
+        return empty, j0
+    # complete segments: a sample at or beyond the segment end exists
+    j_end = int(math.floor(alpha[-1] / D + 1e-12))          # segments j0 .. j_end-1
+    S = j_end - j0
+    if S <= 0:
+        return empty, j0
+    med = float(np.median(d))
+    gap = 3.0 * med if max_gap_deg is None else float(max_gap_deg)
+    seg_start = (j0 + np.arange(S)) * D
+    t_start = np.interp(seg_start, alpha, tt) if tt is not None else np.full(S, np.nan)
+    t_end = np.interp(seg_start + D, alpha, tt) if tt is not None else np.full(S, np.nan)
+    h = med
+    uniform = (np.max(np.abs(d - h)) <= 1e-9 * max(h, 1.0) and
+               abs(D / h - round(D / h)) < 1e-9 and
+               (alpha_prev is None or abs(alpha[0] - alpha_prev - h) <= 1e-9 * max(h, 1.0)))
+    i_first = int(np.searchsorted(alpha, j0 * D - 1e-9 * D))
+    if uniform and i_first == 0 and alpha_prev is None and abs(alpha[0] - j0 * D) > 1e-9:
+        uniform = False          # record starts inside a cell: let the general path clip it
+    if uniform:
+        coef, status = _uniform(alpha, values, j0, S, D, K, h, i_first)
+    else:
+        coef, status = _general(alpha, values, j0, S, D, K, alpha_prev)
+    # crank-angle gaps
+    if d.size and np.any(d > gap):
+        big = np.nonzero(d > gap)[0]
+        for i in big:
+            a_lo, a_hi = alpha[i], alpha[i + 1]
+            js = np.arange(int(math.floor(a_lo / D)), int(math.floor(a_hi / D)) + 1) - j0
+            js = js[(js >= 0) & (js < S)]
+            status[js] = "gap"
+    if alpha_prev is not None and alpha[0] - alpha_prev > gap:
+        js = np.arange(int(math.floor(alpha_prev / D)), int(math.floor(alpha[0] / D)) + 1) - j0
+        status[js[(js >= 0) & (js < S)]] = "gap"
+    bad_num = ~np.all(np.isfinite(coef), axis=(0, 2))
+    status[(status == "ok") & bad_num] = "nan"
+    valid = status == "ok"
+    coef[:, ~valid, :] = np.nan
+    out = CrankHarmonics(index=j0 + np.arange(S), alpha_start=seg_start, t_start=t_start,
+                         t_end=t_end, coef=coef, valid=valid, status=status)
+    return out, j_end
+
+
+def _uniform(alpha, values, j0, S, D, K, h, i_first):
+    """Uniform grid: one weight vector and one (diagonal-ish) Gram matrix for all segments."""
+    m = int(round(D / h))
+    s0 = j0 * D
+    a_loc = alpha[i_first:i_first + m + 1]
+    lo = np.maximum(np.concatenate([[a_loc[0] - h / 2], (a_loc[:-1] + a_loc[1:]) / 2]), s0)
+    hi = np.minimum(np.concatenate([(a_loc[:-1] + a_loc[1:]) / 2, [a_loc[-1] + h / 2]]), s0 + D)
+    w = np.maximum(hi - lo, 0.0)
+    if i_first == 0 and abs(alpha[0] - s0) <= 1e-9 * D:
+        w[0] = h / 2.0
+    phi = _basis(a_loc, D, K)
+    wphi = w[:, None] * phi
+    G = phi.T @ wphi
+    Ginv = np.linalg.inv(G)
+    C = values.shape[0]
+    X = values[:, i_first:i_first + S * m].reshape(C, S, m)
+    g = X @ wphi[:m]
+    tail = values[:, i_first + m: i_first + (S + 1) * m: m]
+    if tail.shape[1] < S:   # last segment ends exactly on the last sample
+        tail = np.concatenate([tail, values[:, -1:]], axis=1)[:, :S]
+    g += tail[:, :, None] * wphi[m][None, None, :]
+    coef = g @ Ginv.T
+    status = np.full(S, "ok", dtype="<U10")
+    return coef, status
+
+
+def _general(alpha, values, j0, S, D, K, alpha_prev):
+    """Any sampling: clipped cells, contributions split at boundaries, batched 2K+1 solves."""
+    N = alpha.size
+    P = 1 + 2 * K
+    mid = (alpha[:-1] + alpha[1:]) / 2.0
+    first_lo = alpha[0] if alpha_prev is None else (alpha_prev + alpha[0]) / 2.0
+    lo = np.concatenate([[first_lo], mid])
+    hi = np.concatenate([mid, [alpha[-1]]])
+    seg_lo = np.floor(lo / D).astype(np.int64)
+    seg_hi = np.floor(hi / D).astype(np.int64)
+    # a cell may touch at most two segments for valid data; longer cells are gaps anyway
+    cut = np.minimum(hi, (seg_lo + 1) * D)
+    idx = np.concatenate([np.arange(N), np.arange(N)])
+    seg = np.concatenate([seg_lo, seg_hi]) - j0
+    w = np.concatenate([cut - lo, np.where(seg_hi > seg_lo, hi - np.maximum(lo, seg_hi * D),
+                                           0.0)])
+    keep = (w > 0) & (seg >= 0) & (seg < S)
+    idx, seg, w = idx[keep], seg[keep], w[keep]
+    phi = _basis(alpha[idx], D, K)
+    wphi = w[:, None] * phi
+    G = np.zeros((S, P, P))
+    for a in range(P):
+        for b in range(a, P):
+            G[:, a, b] = np.bincount(seg, weights=wphi[:, a] * phi[:, b], minlength=S)
+            G[:, b, a] = G[:, a, b]
+    C = values.shape[0]
+    g = np.zeros((C, S, P))
+    x = values[:, idx]
+    for a in range(P):
+        for c in range(C):
+            g[c, :, a] = np.bincount(seg, weights=wphi[:, a] * x[c], minlength=S)
+    cover = np.bincount(seg, weights=w, minlength=S)
+    count = np.bincount(seg, minlength=S)
+    status = np.full(S, "ok", dtype="<U10")
+    status[np.abs(cover - D) > 1e-9 * D] = "incomplete"
+    status[count < P] = "incomplete"
+    ok = status == "ok"
+    coef = np.full((C, S, P), np.nan)
+    if np.any(ok):
+        Gok = G[ok]
+        cond_ok = np.linalg.cond(Gok) < 1e10
+        sol = np.full((C, int(ok.sum()), P), np.nan)
+        if np.any(cond_ok):
+            rhs = np.moveaxis(g[:, ok][:, cond_ok], 0, -1)            # (s, P, C)
+            sol_ok = np.linalg.solve(Gok[cond_ok], rhs)             # (s, P, C)
+            sol[:, cond_ok] = np.moveaxis(sol_ok, -1, 0)
+        coef[:, ok] = sol
+        st = status[ok]
+        st[~cond_ok] = "incomplete"
+        status[ok] = st
+    return coef, status
+
+
+# ----------------------------------------------------------------------------- features
+def _features_from(h: CrankHarmonics, channels: tuple[str, ...], *, plant: str, D: float,
+                   V_D: float, R: float) -> tuple[tuple[str, ...], tuple[str, ...], np.ndarray]:
+    ci = {c: i for i, c in enumerate(channels)}
+    mean = h.coef[:, :, 0]
+    amp = h.amplitude(1)
+    ph = h.phase_deg(1, D)
+    n = mean[ci["n"]]
+    p2 = mean[ci["p2"]]
+    T2 = mean[ci["T2"]]
+    maf = mean[ci["maf"]]
+    rho2 = p2 / (R * T2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        eta = (maf / 3600.0) / (0.5 * n / 60.0 * V_D * rho2)
+    cols = [n, rho2, p2, T2, maf, amp[ci["maf"]], ph[ci["maf"]], amp[ci["p2"]], ph[ci["p2"]],
+            eta]
+    names = list(FEATURE_NAMES)
+    units = list(FEATURE_UNITS)
+    for a in ACTUATOR_CHANNELS:
+        if a in ci:
+            cols.append(mean[ci[a]])
+            names.append(a)
+            units.append(ACTUATOR_UNITS[a])
+    vals = np.stack(cols, axis=1) if cols else np.zeros((h.index.size, 0))
+    vals[~h.valid] = np.nan
+    return tuple(names), tuple(units), vals
+
+
+def _check_units(block: SampleBlock) -> None:
+    if block.alpha.size != block.t.size:
+        raise ValueError("the block has no crank angles: crank-synchronous features need alpha")
+    for name, unit in REQUIRED.items():
+        if name not in block.channels:
+            raise ValueError(f"channel {name!r} [{unit}] missing (has {block.channels})")
+        got = block.units[block.channels.index(name)]
+        if got != unit:
+            raise ValueError(f"channel {name!r} must be in {unit!r}, got {got!r}")
+
+
+@dataclass(frozen=True)
+class SegmentTable:
+    """Features of many segments as arrays (the fast form of a list of FeatureVector)."""
+
+    plant: str
+    index: np.ndarray
+    t_start: np.ndarray
+    t_end: np.ndarray
+    alpha_start: np.ndarray
+    valid: np.ndarray
+    status: np.ndarray
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    values: np.ndarray      # (S, F)
+
+    def column(self, name: str) -> np.ndarray:
+        return self.values[:, self.names.index(name)]
+
+    def to_features(self) -> list[FeatureVector]:
+        return [FeatureVector(plant=self.plant, index=int(self.index[i]),
+                              t_start=float(self.t_start[i]), t_end=float(self.t_end[i]),
+                              alpha_start=float(self.alpha_start[i]), valid=bool(self.valid[i]),
+                              status=str(self.status[i]), names=self.names, units=self.units,
+                              values=self.values[i].copy())
+                for i in range(self.index.size)]
+
+
+class CrankSegmenter:
+    """Streaming segmenter: keeps the unfinished segment between blocks.
+
+    Parameters
+    ----------
+    segment_deg : segment length [deg CA] (180 for a 4-cylinder four-stroke engine).
+    V_D : displacement [m^3]; R : gas constant [J/(kg K)] for rho2 and eta_v.
+    n_harmonics : harmonics fitted jointly (1..K) to keep higher orders out of the first.
+    max_gap_deg : largest crank-angle step that is not a gap (default 3 x median step).
+
+    ``push(block)`` returns the feature vectors of the segments completed by the block.
+    A block whose crank angles are not strictly increasing, or that starts at or before the
+    previous block's last crank angle, raises ValueError and leaves the state unchanged.
+    """
+
+    def __init__(self, *, segment_deg: float = 180.0, V_D: float = 2.0e-3, R: float = 287.0,
+                 n_harmonics: int = 3, max_gap_deg: float | None = None) -> None:
+        if not (np.isfinite(segment_deg) and segment_deg > 0):
+            raise ValueError("segment_deg must be > 0")
+        if not (V_D > 0 and R > 0):
+            raise ValueError("V_D and R must be > 0")
+        if not 1 <= int(n_harmonics) <= 16:
+            raise ValueError("n_harmonics must be within 1..16")
+        self.D = float(segment_deg)
+        self.V_D = float(V_D)
+        self.R = float(R)
+        self.K = int(n_harmonics)
+        self.max_gap = max_gap_deg
+        self.reset()
+
+    def reset(self) -> None:
+        self._alpha = np.zeros(0)
+        self._t = np.zeros(0)
+        self._vals: np.ndarray | None = None
+        self._channels: tuple[str, ...] | None = None
+        self._units: tuple[str, ...] | None = None
+        self._prev: float | None = None
+        self._next_seg: int | None = None
+        self._plant = ""
+
+    def push_table(self, block: SampleBlock) -> SegmentTable:
+        """Like :meth:`push` but returns a :class:`SegmentTable` (no per-segment objects)."""
+        _check_units(block)
+        alpha = np.asarray(block.alpha, dtype=float)
+        t = np.asarray(block.t, dtype=float)
+        _check_order(alpha, t)
+        if self._channels is not None and block.channels != self._channels:
+            raise ValueError("channels changed between blocks; reset() the segmenter first")
+        last = self._alpha[-1] if self._alpha.size else self._prev
+        if last is not None and alpha.size and not alpha[0] > last:
+            raise ValueError(f"block starts at {alpha[0]} deg CA, not after the previous "
+                             f"sample at {last} deg CA (unsorted or duplicate crank angles)")
+        if self._channels is None:
+            self._channels, self._units, self._plant = block.channels, block.units, block.plant
+        A = np.concatenate([self._alpha, alpha])
+        T = np.concatenate([self._t, t])
+        V = block.values if self._vals is None else np.concatenate([self._vals, block.values],
+                                                                    axis=1)
+        if A.size >= 2:
+            h, nxt = crank_harmonics(A, T, V, segment_deg=self.D, n_harmonics=self.K,
+                                     max_gap_deg=self.max_gap, alpha_prev=self._prev,
+                                     first_segment=self._next_seg)
+        else:
+            h, nxt = None, self._next_seg
+        if nxt is None:
+            nxt = int(math.ceil(A[0] / self.D - 1e-12))
+        # keep the samples of the unfinished segment (and the one before, for its cell)
+        i_keep = int(np.searchsorted(A, nxt * self.D - 1e-9 * self.D))
+        i_keep = max(i_keep - 1, 0)
+        if i_keep > 0:
+            self._prev = float(A[i_keep - 1])
+        self._alpha, self._t, self._vals = A[i_keep:], T[i_keep:], V[:, i_keep:]
+        self._next_seg = nxt
+        if h is None or h.index.size == 0:
+            return _empty_table(self._plant)
+        names, units, vals = _features_from(h, self._channels, plant=self._plant, D=self.D,
+                                            V_D=self.V_D, R=self.R)
+        return SegmentTable(plant=self._plant, index=h.index, t_start=h.t_start, t_end=h.t_end,
+                            alpha_start=h.alpha_start, valid=h.valid, status=h.status,
+                            names=names, units=units, values=vals)
+
+    def push(self, block: SampleBlock) -> list[FeatureVector]:
+        """Feature vectors of the segments completed by this block (may be empty)."""
+        return self.push_table(block).to_features()
+
+
+def _empty_table(plant: str) -> SegmentTable:
+    z = np.zeros(0)
+    return SegmentTable(plant=plant, index=np.zeros(0, int), t_start=z, t_end=z, alpha_start=z,
+                        valid=np.zeros(0, bool), status=np.zeros(0, dtype="<U10"),
+                        names=FEATURE_NAMES, units=FEATURE_UNITS,
+                        values=np.zeros((0, len(FEATURE_NAMES))))
+
+
+def segment_table(block: SampleBlock, *, segment_deg: float = 180.0, V_D: float = 2.0e-3,
+                  R: float = 287.0, n_harmonics: int = 3,
+                  max_gap_deg: float | None = None) -> SegmentTable:
+    """Features of all complete segments of one block, as arrays."""
+    seg = CrankSegmenter(segment_deg=segment_deg, V_D=V_D, R=R, n_harmonics=n_harmonics,
+                         max_gap_deg=max_gap_deg)
+    return seg.push_table(block)
+
+
+def segment_features(block: SampleBlock, *, segment_deg: float = 180.0, V_D: float = 2.0e-3,
+                     R: float = 287.0, n_harmonics: int = 3,
+                     max_gap_deg: float | None = None) -> list[FeatureVector]:
+    """Feature vectors of all complete segments of one block (see the module docstring)."""
+    return segment_table(block, segment_deg=segment_deg, V_D=V_D, R=R,
+                         n_harmonics=n_harmonics, max_gap_deg=max_gap_deg).to_features()

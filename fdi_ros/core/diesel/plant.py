@@ -74,6 +74,10 @@ FAULT_LIMITS = {"crankcase_vent_open": (0.0, 40.0), "leak_ic_engine": (0.0, 40.0
 CHANNELS = ("n", "p2", "T2", "maf", "fuel", "egr_cmd", "swirl_cmd", "vgt")
 UNITS = ("rpm", "Pa", "K", "kg/h", "mg/stroke", "1", "1", "1")
 PLANT_ID = "diesel"
+TRUTH_LOG_KEYS = ("t", "n", "fuel", "egr_cmd", "swirl_cmd", "vgt_cmd", "eta_v", "m_maf",
+                  "m_cyl", "m_egr", "m_leak", "m_vent", "m_bb", "m_c", "p1", "p_ic", "p2", "p3",
+                  "T2", "T2s", "rho2", "vgt_pos", "w_tc", "p2_sp", "u_vent", "u_leak",
+                  "u_restr", "u_swirl", "u_egr_stuck", "u_egr_leak")
 
 
 @dataclass(frozen=True)
@@ -300,7 +304,7 @@ class _FaultSchedule:
     def add(self, ev: FaultEvent) -> None:
         if ev.fault and ev.fault not in FAULT_IDS:
             raise ValueError(f"unknown diesel fault {ev.fault!r}; known: {', '.join(FAULT_IDS)}")
-        if ev.fault:
+        if ev.fault and ev.active:
             unit = FAULT_UNITS[ev.fault]
             if ev.size_unit not in (unit, "") and not (unit == "1" and ev.size_unit == "fraction"):
                 raise ValueError(f"fault {ev.fault} is sized in {unit!r}, got {ev.size_unit!r}")
@@ -331,12 +335,6 @@ class _FaultSchedule:
 
 
 # ----------------------------------------------------------------------------- the plant
-_REC = ("t", "alpha", "n", "fuel", "egr_cmd", "swirl_cmd", "vgt_cmd", "vgt_pos", "p1", "p_co",
-        "p_ic", "p2", "p3", "p4", "T_ic", "T2", "T2s", "T3", "m_maf", "m_c", "m_vent", "m_bb",
-        "m_leak", "m_d", "m_cyl", "m_egr", "m_t", "eta_v", "w_tc", "pr_c", "dpr_dm",
-        "tau_port", "dp_restr", "dp_pipe", "dp_af", "p2_sp", "u_vent", "u_leak", "u_restr",
-        "u_swirl", "u_egr_stuck", "u_egr_leak")
-
 
 class DieselIntakePlant:
     """The turbo-diesel intake plant, sampled at a fixed crank-angle increment.
@@ -369,6 +367,8 @@ class DieselIntakePlant:
         self._hist: dict[str, np.ndarray] | None = None
         self._last: dict[str, float] = {}
         self._initialised = False
+        #: when a list, every slow step's true quantities are appended (chunks of arrays)
+        self.truth_log: list[dict[str, np.ndarray]] | None = None
 
     # ------------------------------------------------------------------ inputs and faults
     def set_inputs(self, *, n_rpm: float, fuel_mg: float, egr_cmd: float = 0.0,
@@ -629,6 +629,14 @@ class DieselIntakePlant:
         self._last = dict(t=t, alpha=alpha, n=n_prev)
         out = {k: np.array([r[k] for r in recs], dtype=float) for k in recs[0]}
         out["X_maf"], out["X_p2"] = pulsation_harmonics(out, p, self._c_suction)
+        if self.truth_log is not None:
+            entry = {k: out[k] for k in TRUTH_LOG_KEYS}
+            entry["eta_v_air"] = out["m_maf"] / (out["n"] / 120.0 * p.V_D * out["rho2"])
+            for name in ("maf", "p2"):
+                x1 = out[f"X_{name}"][:, 0]
+                entry[f"{name}_amp"] = np.abs(x1)
+                entry[f"{name}_phase"] = (np.degrees(np.angle(x1)) / 2.0 + 90.0) % 180.0 - 90.0
+            self.truth_log.append(entry)
         return out
 
     def _append_hist(self, new: dict[str, np.ndarray]) -> None:

@@ -14,7 +14,10 @@ manifold also sees the air stored in those volumes while their pressure changes;
 
     m_meas = m_air + sum_j V_j / (R T) * d p_j / d t
 
-with the volumes V_j identified in the same least-squares problem. Operating points outside the identified region (with a
+with the volumes V_j identified in the same least-squares problem. For crank-angle resolved
+data (a diesel's MAF pulsates with the cylinders' suction, period 180 deg CA) ``orders`` adds
+the pulsation ``sum_k a_k(n, p) cos(2 pi k alpha / 180) + b_k(n, p) sin(...)`` with
+polynomial amplitude maps, identified in the same linear problem. Operating points outside the identified region (with a
 margin) are predicted as NaN: the analysis masks them instead of extrapolating a polynomial.
 """
 
@@ -66,6 +69,9 @@ class SpeedDensityModel:
     storage: tuple[str, ...] = ()
     volumes_l: tuple[float, ...] = ()
     derivative_window_s: float = 0.25
+    orders: tuple[float, ...] = ()
+    harmonic_degree: int = 2
+    harm_coef: tuple[float, ...] = ()
     kind: str = field(default="speed_density", init=False)
 
     def __post_init__(self) -> None:
@@ -116,16 +122,80 @@ class SpeedDensityModel:
                 * 1e-3 / (R_AIR * T) * self.flow_scale for s in self.storage]
         return np.stack(cols, axis=1) if cols else np.zeros((data.n_samples, 0))
 
+    def _segment_smoothed(self, data: Measured) -> Measured:
+        """Crank-resolved inputs averaged over a sliding 180 deg CA window.
+
+        The mean-value part of the model must see the mean manifold state, not its pulsation
+        (the pulsation of p2 times eta_V, or its derivative, is not an air flow).
+        """
+        if data.alpha is None:
+            return data
+        da = float(np.median(np.diff(data.alpha)))
+        w = int(round(180.0 / da)) if da > 0 else 1
+        if w <= 1:
+            return data
+        sig = dict(data.signals)
+        k = np.ones(w) / w
+        for name in set(self.inputs):
+            x = data[name]
+            sm = np.convolve(x, k, mode="same")
+            sm[: w // 2] = np.nan
+            sm[x.size - (w - 1 - w // 2):] = np.nan
+            sig[name] = sm
+        return Measured(t=data.t, signals=sig, units=dict(data.units), alpha=data.alpha,
+                        segment=data.segment, source=data.source, mapped=data.mapped)
+
+    def without_pulsation(self) -> SpeedDensityModel:
+        """The same mean-value model without the crank-angle pulsation terms."""
+        return SpeedDensityModel(**{**self.to_params(), "orders": (), "harm_coef": ()})
+
+    def harmonic_regressors(self, data: Measured) -> np.ndarray:
+        """(N, 2 * len(orders) * n_poly) pulsation regressors (empty without orders)."""
+        if not self.orders:
+            return np.zeros((data.n_samples, 0))
+        if data.alpha is None:
+            raise ValueError("this model predicts the crank-angle pulsation: the measured data "
+                             "needs a crank angle (alpha)")
+        nz, pz = self._z(data)
+        poly = _basis(nz, pz, self.harmonic_degree)
+        cols = []
+        for k in self.orders:
+            th = 2.0 * np.pi * k * data.alpha / 180.0
+            cols += [poly * np.cos(th)[:, None], poly * np.sin(th)[:, None]]
+        return np.hstack(cols)
+
     def predict(self, data: Measured) -> dict[str, np.ndarray]:
+        data = self._segment_smoothed(data)
         m = self.eta_v(data) * self.m_th(data)
         if self.storage:
             m = m + self.filling_regressors(data) @ np.asarray(self.volumes_l)
+        if self.orders and self.harm_coef:
+            m = m + self.harmonic_regressors(data) @ np.asarray(self.harm_coef)
         return {self.channel: m}
 
     # --- identification and persistence -----------------------------------------------------
     def fit(self, data: Measured | list[Measured]) -> SpeedDensityModel:
-        """Identify eta_V by least squares in flow space on (a list of) fault-free records."""
+        """Identify eta_V by least squares in flow space on (a list of) fault-free records.
+
+        With pulsation ``orders`` and crank-resolved records, the mean-value part is
+        identified on 180 deg CA segment means (derivatives of the pulsating pressure would
+        be noise) and the pulsation maps on the crank-resolved residual of that part.
+        """
         recs = data if isinstance(data, list) else [data]
+        if self.orders and all(r.alpha is not None for r in recs):
+            from fdi_ros.core.measured import segment_means
+
+            mean = self.without_pulsation().fit([segment_means(r) for r in recs])
+            full = SpeedDensityModel(**{**mean.to_params(), "orders": tuple(self.orders),
+                                        "harm_coef": ()})
+            A = np.vstack([full.harmonic_regressors(full._segment_smoothed(r))
+                           for r in recs])
+            y = np.concatenate([r[self.channel] - mean.predict(r)[self.channel]
+                                for r in recs])
+            ok = np.isfinite(A).all(axis=1) & np.isfinite(y)
+            sol, *_ = np.linalg.lstsq(A[ok], y[ok], rcond=None)
+            return SpeedDensityModel(**{**full.to_params(),
+                                        "harm_coef": tuple(float(v) for v in sol)})
         n_all = np.concatenate([r[self.n] for r in recs])
         p_all = np.concatenate([r[self.p] for r in recs])
         ok_all = np.isfinite(n_all) & np.isfinite(p_all)
@@ -135,13 +205,14 @@ class SpeedDensityModel:
             raise ValueError("identification data must vary in speed and pressure")
         proto = SpeedDensityModel(**{**self.to_params(), "n_range": n_range,
                                      "p_range": p_range, "coef": (1.0,),
-                                     "volumes_l": (0.0,) * len(self.storage)})
+                                     "volumes_l": (0.0,) * len(self.storage),
+                                     "harm_coef": ()})
         rows, rhs = [], []
         for r in recs:
             nz, pz = proto._z(r)
             mth = proto.m_th(r)
             A = np.hstack([_basis(nz, pz, self.degree) * mth[:, None],
-                           self.filling_regressors(r)])
+                           self.filling_regressors(r), proto.harmonic_regressors(r)])
             y = r[self.channel]
             ok = np.isfinite(A).all(axis=1) & np.isfinite(y)
             rows.append(A[ok])
@@ -150,10 +221,12 @@ class SpeedDensityModel:
         if A.shape[0] < 10 * A.shape[1]:
             raise ValueError(f"too few valid samples ({A.shape[0]}) to identify eta_V")
         sol, *_ = np.linalg.lstsq(A, y, rcond=None)
-        k = sol.size - len(self.storage)
+        k = _basis(np.zeros(1), np.zeros(1), self.degree).shape[1]
+        kv = k + len(self.storage)
         return SpeedDensityModel(**{**self.to_params(), "n_range": n_range, "p_range": p_range,
                                     "coef": tuple(float(c) for c in sol[:k]),
-                                    "volumes_l": tuple(float(v) for v in sol[k:])})
+                                    "volumes_l": tuple(float(v) for v in sol[k:kv]),
+                                    "harm_coef": tuple(float(v) for v in sol[kv:])})
 
     def to_params(self) -> dict:
         return dict(displacement_l=self.displacement_l, n=self.n, p=self.p, T=self.T,
@@ -163,19 +236,21 @@ class SpeedDensityModel:
                     leak_p_amb=self.leak_p_amb, leak_T_amb=self.leak_T_amb,
                     leak_cd=self.leak_cd, storage=tuple(self.storage),
                     volumes_l=tuple(self.volumes_l),
-                    derivative_window_s=self.derivative_window_s)
+                    derivative_window_s=self.derivative_window_s,
+                    orders=tuple(self.orders), harmonic_degree=self.harmonic_degree,
+                    harm_coef=tuple(self.harm_coef))
 
     def to_dict(self) -> dict:
         d = self.to_params()
         d["type"] = self.kind
-        for k in ("coef", "n_range", "p_range", "storage", "volumes_l"):
+        for k in ("coef", "n_range", "p_range", "storage", "volumes_l", "orders", "harm_coef"):
             d[k] = list(d[k])
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> SpeedDensityModel:
         d = {k: v for k, v in d.items() if k != "type"}
-        for k in ("coef", "n_range", "p_range", "volumes_l"):
+        for k in ("coef", "n_range", "p_range", "volumes_l", "orders", "harm_coef"):
             if k in d:
                 d[k] = tuple(float(v) for v in d[k])
         if "storage" in d:

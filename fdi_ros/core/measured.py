@@ -348,3 +348,38 @@ def load_measured(path: str | Path, mapping: str | Path | None = None) -> Measur
     if path.suffix.lower() != ".csv":
         raise ValueError(f"{path}: measured data must be a .csv file or a bag directory")
     return load_csv(path, mapping)
+
+
+def segment_means(data: Measured, *, segment_deg: float = 180.0) -> Measured:
+    """Average every signal over complete crank-angle segments (180 deg CA for 4 cylinders).
+
+    The mean-value view of crank-resolved data: the pulsation of the cylinders' suction
+    (integer orders of the 180 deg CA fundamental) averages out. A segment with a missing
+    sample (NaN) gets NaN for that signal; incomplete first/last segments are dropped.
+    """
+    if data.alpha is None:
+        raise ValueError("segment means need crank-angle resolved data (alpha)")
+    seg = np.floor((data.alpha - data.alpha[0]) / segment_deg + 1e-9).astype(np.int64)
+    # a segment is complete when it spans the whole segment angle at the typical spacing
+    counts = np.bincount(seg)
+    full = int(np.median(counts[1:-1])) if counts.size > 2 else int(counts.max())
+    ok_seg = counts >= full
+    ok_seg[0] = ok_seg[-1] = False
+    keep = ok_seg[seg]
+    s = seg[keep]
+    _, inv = np.unique(s, return_inverse=True)
+    cnt = np.bincount(inv)
+
+    def mean(x: np.ndarray) -> np.ndarray:
+        return np.bincount(inv, weights=x[keep]) / cnt
+
+    t = mean(data.t)
+    sig = {k: mean(v) for k, v in data.signals.items()}
+    alpha0 = np.bincount(inv, weights=data.alpha[keep]) / cnt
+    grp_seg = np.bincount(inv, weights=data.segment[keep].astype(float)) / cnt
+    # a segment straddling a gap is not a segment
+    seg_id = np.round(grp_seg).astype(int)
+    out = Measured(t=t, signals=sig, units=dict(data.units), alpha=None, segment=seg_id,
+                   source=f"{data.source} (180 deg CA segment means)", mapped=data.mapped)
+    object.__setattr__(out, "segment_alpha", alpha0)
+    return out

@@ -52,14 +52,47 @@ def _ffill(x: np.ndarray) -> np.ndarray:
     return y
 
 
+def _lowpass_varying(x: np.ndarray, t: np.ndarray, tau_s: float, y0: float) -> np.ndarray:
+    """Exact ZOH first-order lag for non-uniform sample times.
+
+    ``y_k = a_k y_{k-1} + (1 - a_k) x_k`` with ``a_k = exp(-(t_k - t_{k-1}) / tau)``; the
+    product of the a's is ``exp(-(t_k - t_c) / tau)``, so within a chunk the recursion is a
+    weighted cumulative sum; chunks of at most 200 tau keep the exponentials finite.
+    """
+    y = np.empty_like(x)
+    a = np.exp(-np.diff(t, prepend=t[0]) / tau_s)
+    start, state = 0, y0
+    n = x.size
+    while start < n:
+        stop = int(np.searchsorted(t, t[start] + 200.0 * tau_s, side="right"))
+        stop = min(max(stop, start + 1), n)
+        tc = t[start]
+        g = np.exp((t[start:stop] - tc) / tau_s)
+        acc = np.cumsum((1.0 - a[start:stop]) * x[start:stop] * g)
+        y[start:stop] = (state * a[start] + acc) / g
+        state = y[stop - 1]
+        start = stop
+    return y
+
+
 def lowpass(x: np.ndarray, t: np.ndarray, segment: np.ndarray, tau_s: float) -> np.ndarray:
-    """First-order lag ``tau dy/dt + y = x`` per segment (zero-order-hold discretisation)."""
+    """First-order lag ``tau dy/dt + y = x`` per segment (zero-order-hold discretisation).
+
+    Uniform sampling uses a recursive filter; crank-angle sampled data (time steps that vary
+    with speed) the exact time-varying recursion.
+    """
     out = np.empty_like(x, dtype=float)
+    tau_s = max(tau_s, 1e-12)
     for s in np.unique(segment):
         idx = np.flatnonzero(segment == s)
         xs = _ffill(x[idx])
-        dt = float(np.median(np.diff(t[idx]))) if idx.size > 1 else 1.0
-        a = math.exp(-dt / max(tau_s, 1e-12))
+        ts = t[idx]
+        steps = np.diff(ts)
+        if steps.size and steps.max() > 1.01 * steps.min():
+            out[idx] = _lowpass_varying(xs, ts, tau_s, xs[0])
+            continue
+        dt = float(steps[0]) if steps.size else 1.0
+        a = math.exp(-dt / tau_s)
         ys, _ = lfilter([1.0 - a], [1.0, -a], xs, zi=[a * xs[0]])
         out[idx] = ys
     out[~np.isfinite(x)] = np.nan
@@ -491,7 +524,12 @@ def candidates(ctx: ChannelContext, *, effects: tuple[str, ...] = CATALOGUE,
         elif e == "leak" and ctx.leak_q is not None:
             out += [Leak()] + ([Leak(onset=True)] if onset else [])
         elif e == "missing_harmonic" and ctx.alpha is not None:
-            out.append(MissingHarmonic())
+            # orders the crank-angle sampling resolves (below 0.45 of the Nyquist order)
+            da = float(np.median(np.diff(ctx.alpha)))
+            top = 0.45 * 180.0 / da if da > 0 else 0.0
+            orders = tuple(k for k in MissingHarmonic().orders if k <= top)
+            if orders:
+                out.append(MissingHarmonic(orders=orders))
         elif e == "local_region" and ctx.region:
             out.append(LocalRegion())
     return out

@@ -291,7 +291,8 @@ def _one_se_choice(scored: list[tuple[Effect, Candidate]], alpha: float
             continue
         d = c.mse_blocks - best[1].mse_blocks
         d = d[np.isfinite(d)]
-        if d.size >= 3 and d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size):
+        tol = 1e-3 * float(np.nanmean(best[1].mse_blocks))
+        if d.size >= 3 and d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size) + tol:
             return eff, c
     return best
 
@@ -432,3 +433,31 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
                              n_blocks=max([c.get("n_blocks", 0) for c in summary.values()]
                                           or [0]), nit=nit,
                              seconds=time.perf_counter() - t0, config=cfg, oof=oof)
+
+
+def merge_results(a: DiscrepancyResult, b: DiscrepancyResult, *, b_suffix: str
+                  ) -> DiscrepancyResult:
+    """One result from two analyses (e.g. mean-value and crank-resolved views of a channel).
+
+    Findings are re-ranked by held-out gain; chains are concatenated per channel (``b``'s
+    extensions act on top of ``a``'s); ``b``'s channel summaries get ``b_suffix``.
+    """
+    findings = sorted(a.findings + b.findings, key=lambda f: -f.gain_pct)
+    findings = [Finding(**{**f.__dict__, "rank": i + 1}) for i, f in enumerate(findings)]
+    chains = {ch: list(a.chains.get(ch, [])) + list(b.chains.get(ch, []))
+              for ch in set(a.chains) | set(b.chains)}
+    channels = dict(a.channels)
+    channels.update({f"{ch}{b_suffix}": v for ch, v in b.channels.items()})
+    cands = sorted(a.candidates + b.candidates, key=lambda c: -c.gain_pct)
+    if findings:
+        top = findings[0]
+        verdict = "discrepant"
+        msg = (f"{len(findings)} significant finding(s); top: {top.label} on {top.channel} "
+               f"(held-out RMSE -{top.gain_pct:.1f}%)")
+    else:
+        verdict, msg = a.verdict, a.message
+    return DiscrepancyResult(findings=findings, candidates=cands, verdict=verdict, message=msg,
+                             success=a.success and b.success, channels=channels,
+                             chains=chains, n_blocks=max(a.n_blocks, b.n_blocks),
+                             nit=a.nit + b.nit, seconds=a.seconds + b.seconds,
+                             config=a.config, oof=a.oof)

@@ -70,27 +70,30 @@ def _blocks_from_csv(path: Path, mapping):
 
 
 def features_from_blocks(blocks) -> list:
-    from fdi_ros.core.crank import segment_features
+    """Crank-synchronous features of consecutive blocks (segments may straddle blocks)."""
+    from fdi_ros.core.crank import CrankSegmenter
 
+    seg = CrankSegmenter()
     out = []
     for b in blocks:
-        out.extend(segment_features(b))
+        out.extend(seg.push_table(b).to_features())
     return out
 
 
-def simulate_features(scenario_path, *, seed: int, progress: bool = False):
-    """Simulate a diesel scenario and segment it; returns (features, fault truth events)."""
-    from fdi_ros.core.diesel.plant import load_scenario, simulate
+def simulate_features(scenario, *, seed: int, progress: bool = False, faults=None):
+    """Simulate a diesel scenario (path or Scenario; ``faults`` replaces its fault events) and
+    return (features, fault truth events)."""
+    import dataclasses
 
-    sim = simulate(load_scenario(scenario_path), seed=seed)
-    blocks = getattr(sim, "blocks", None)
-    feats = getattr(sim, "features", None)
-    if feats is None:
-        if blocks is None:
-            raise ValueError("simulation result has neither blocks nor features")
-        feats = features_from_blocks(blocks)
-    truth = list(getattr(sim, "faults", None) or getattr(sim, "truth", None) or [])
-    return list(feats), truth
+    from fdi_ros.core.diesel.scenario import load_scenario, simulate
+
+    sc = load_scenario(scenario)
+    if faults is not None:
+        sc = dataclasses.replace(sc, faults=tuple(faults))
+    sim = simulate(sc, seed=seed, keep_blocks=False, progress=progress)
+    if sim.features is None:
+        raise ValueError("the simulation produced no features")
+    return sim.features.to_features(), list(sim.faults)
 
 
 def load_features(source, *, seed: int = 0, mapping=None, cache: bool = True) -> list:
@@ -153,14 +156,14 @@ def _read_cache(path: Path) -> list:
                 for v, m, ok, st in zip(z["values"], z["meta"], z["valid"], z["status"])]
 
 
-def calibrate_from_features(mset, feats):
-    """Fault-free residual statistics -> SymptomConfig (thresholds), plus residuals."""
-    from fdi_ros.core.diesel.reference import feature_table
-    from fdi_ros.core.diesel.symptoms import calibrate_thresholds, parity_residuals
+def calibrate_from_features(mset, feats, **kw):
+    """Fault-free residual statistics -> SymptomConfig (thresholds, storage correction, gate);
+    also returns the number of quasi-stationary segments used."""
+    from fdi_ros.core.diesel.symptoms import calibrate_from_fault_free, stream_residuals
 
-    data = feature_table(feats)
-    R, valid = parity_residuals(mset, data)
-    return calibrate_thresholds(R, valid), R, valid, data
+    cfg = calibrate_from_fault_free(mset, feats, **kw)
+    n_used = sum(rv.valid for rv in stream_residuals(mset, feats, config=cfg))
+    return cfg, n_used
 
 
 def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
@@ -168,17 +171,20 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
                  figures=None):
     """Identify, save, calibrate the fault-free thresholds; returns (result, symptom config or
     None, report dict)."""
-    from fdi_ros.core.diesel.reference import (IdentificationConfig, feature_table,
-                                               identify_reference_models)
+    from fdi_ros.core.diesel.reference import (INPUTS, OUTPUTS, IdentificationConfig,
+                                               feature_table, identify_reference_models)
     from fdi_ros.core.diesel.symptoms import THRESHOLDS_FILE
 
     cfg = config or IdentificationConfig(seed=seed)
-    data = feature_table(load_features(data_source, seed=seed, mapping=mapping))
+    feats = load_features(data_source, seed=seed, mapping=mapping)
+    with_p2 = bool(feats) and "p2" in feats[0].names
+    data = feature_table(feats, names=INPUTS + OUTPUTS + (("p2",) if with_p2 else ()))
     res = identify_reference_models(data, config=cfg, progress=progress)
     out = Path(out)
     res.models.save(out)
     report = {"out": str(out), "n_segments": int(data["n"].size), "n_train": res.n_train,
               "n_val": res.n_val, "n_test": res.n_test, "train_s": round(res.train_s, 3),
+              "eta_storage_coeff": res.models.info.get("storage_coeff", 0.0),
               "models": {k: {"n_models": r.n_models, "nrmse_test": round(res.nrmse_test[k], 4),
                              "nrmse_test_lut": round(res.nrmse_test_lut[k], 4),
                              "lut_vs_model_rmse": res.lut_error[k]["rmse"],
@@ -187,10 +193,11 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
     scfg = None
     if fault_free and str(fault_free).lower() != "none":
         ff = load_features(fault_free, seed=threshold_seed, mapping=mapping)
-        scfg, _, valid, _ = calibrate_from_features(res.models, ff)
+        scfg, n_used = calibrate_from_features(res.models, ff)
         (out / THRESHOLDS_FILE).write_text(json.dumps(scfg.to_dict(), indent=1))
         report["thresholds"] = dict(zip(scfg.names, scfg.threshold))
-        report["threshold_segments"] = int(valid.sum())
+        report["storage_coeff"] = scfg.storage_coeff
+        report["threshold_segments"] = int(n_used)
     if figures:
         report["figures"] = [str(p) for p in identification_figures(res, data, figures)]
     return res, scfg, report

@@ -125,6 +125,8 @@ class IdentificationConfig:
     seed: int = 0
     lut_n: tuple[float, ...] = ()
     lut_rho2: tuple[float, ...] = ()
+    storage_correction: bool = True
+    rate_lag: int = 2
 
     def __post_init__(self) -> None:
         if self.block < 1:
@@ -232,6 +234,23 @@ class IdentificationResult:
     message: str
 
 
+def storage_regressor(t, n, p2, lag: int = 2) -> np.ndarray:
+    """``x = (dp2/dt) / (n p2)`` [1/(rpm s)], dp2/dt a backward difference over ``lag``
+    segments (NaN for the first ``lag``), the same estimate the residual models use online.
+
+    The air stored in the boost volume while p2 changes, ``V_b/(R T2) dp2/dt``, passes the MAF
+    sensor but not the cylinders; relative to ``m_th = n/120 V_D p2/(R T2)`` it adds
+    ``(120 V_b / V_D) x`` to the eta_V computed from the MAF.
+    """
+    t, n, p2 = (np.asarray(a, dtype=float) for a in (t, n, p2))
+    x = np.full(t.shape, np.nan)
+    if t.size > lag:
+        dt = t[lag:] - t[:-lag]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x[lag:] = np.where(dt > 0, (p2[lag:] - p2[:-lag]) / dt, np.nan) / (n[lag:] * p2[lag:])
+    return x
+
+
 def _target(k: str, y: np.ndarray, centre: float | None) -> np.ndarray:
     return wrap_phase(y, centre) if k in PHASES else y
 
@@ -269,8 +288,22 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
     if progress:
         from tqdm import tqdm
         outputs = tqdm(OUTPUTS, desc="reference models", unit="model")
+    storage = 0.0
+    xs = None
+    if cfg.storage_correction and all(k in data for k in ("t", "p2")):
+        xs = storage_regressor(data["t"], data["n"], data["p2"], cfg.rate_lag)[finite]
     for k in outputs:
         y = np.asarray(data[k], dtype=float)[finite]
+        if k == "eta_v" and xs is not None:
+            # Static map and storage coefficient by alternating least squares (2 rounds):
+            # the boost transients of the cycle would otherwise smear the static map.
+            ok = np.isfinite(xs)
+            for _ in range(2):
+                m = cfg.lolimot()
+                m.fit(X[tr], (y - storage * np.nan_to_num(xs))[tr])
+                e = y - m.predict(X)
+                storage = float(np.sum(xs[ok] * e[ok]) / np.sum(xs[ok] ** 2))
+            y = y - storage * np.nan_to_num(xs)
         c = circular_mean(y[tr]) if k in PHASES else None
         if c is not None:
             centres[k] = c
@@ -286,7 +319,7 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
         nr_lut[k] = nrmse(y[te], tables[k](X[te]))
         lut_err[k] = table_error(m.predict, tables[k], X[te])
     train_s = time.perf_counter() - t0
-    info = {"nrmse_test": nr_te, "n_models": {k: r.n_models for k, r in results.items()},
+    info = {"nrmse_test": nr_te, "storage_coeff": storage, "n_models": {k: r.n_models for k, r in results.items()},
             "n_train": int(tr.size), "config": {k: (list(v) if isinstance(v, tuple) else v)
                                                 for k, v in asdict(cfg).items()}}
     mset = ReferenceModelSet(models=models, tables=tables, phase_centre=centres, info=info)

@@ -100,6 +100,16 @@ class SymptomConfig:
     scale : fault-free standard deviation of the filtered residual (normalises ``norm``).
     intense_factor : ``++`` when the residual exceeds this multiple of the threshold.
     filter_len : moving-average length [segments]; debounce_on/off : persistence [segments].
+    storage_coeff : dynamic correction of eta_V for the air stored in the boost volume while
+        p2 changes: ``r_eta += storage_coeff * (dp2/dt) / (n p2)`` (identified from fault-free
+        transients by :func:`calibrate_from_fault_free`; 0 = static residual as in the paper).
+    settle_s, max_speed_change, max_fuel_change : quasi-stationarity gate on the ECU's inputs:
+        a segment is "not valid here" while engine speed [rpm] or injected fuel [mg/stroke]
+        has moved more than these within the last ``settle_s`` seconds (the static reference
+        models do not hold in transients; the gate looks at inputs, not at p2 or the MAF,
+        so that a fault's own transient does not switch its detection off).
+    rate_lag : dp2/dt of the storage correction is a backward difference over this many
+        segments.
     """
 
     centre: tuple[float, ...]
@@ -110,9 +120,18 @@ class SymptomConfig:
     debounce_on: int = 2
     debounce_off: int = 4
     names: tuple[str, ...] = RESIDUALS
+    storage_coeff: float = 0.0
+    settle_s: float = 0.0
+    max_speed_change: float = float("inf")
+    max_fuel_change: float = float("inf")
+    rate_lag: int = 2
 
     def __post_init__(self) -> None:
         m = len(self.names)
+        if not (self.max_speed_change > 0 and self.max_fuel_change > 0 and self.settle_s >= 0
+                and self.rate_lag >= 1 and np.isfinite(self.storage_coeff)):
+            raise ValueError("gate limits must be > 0, settle_s >= 0, rate_lag >= 1, "
+                             "storage_coeff finite")
         for name in ("centre", "threshold", "scale"):
             v = tuple(float(x) for x in getattr(self, name))
             if len(v) != m or not np.all(np.isfinite(v)):
@@ -352,6 +371,98 @@ def residual_vector(models: ReferenceModelSet, fv: FeatureVector, *, model_id: s
                           values=np.asarray(r, dtype=float), norm=norm)
 
 
+class QuasiStationarity:
+    """Per-stream causal rates of n and p2, the storage correction of r_eta and the gate.
+
+    ``dn/dt`` and ``dp2/dt`` are backward differences of the segment means over ``rate_lag``
+    segments. The stored air ``V_b/(R T2) dp2/dt`` passes the MAF sensor but not the
+    cylinders, so in a boost transient the measured eta_V is off by
+    ``storage_coeff * (dp2/dt) / (n p2)``; the correction removes that from r_eta.
+    """
+
+    def __init__(self, config: SymptomConfig | None) -> None:
+        self.config = config
+        lag = config.rate_lag if config is not None else 2
+        self._hist: deque = deque(maxlen=lag + 1)
+        self._inputs: deque = deque()   # (t, n, fuel) over the last settle_s
+
+    @property
+    def active(self) -> bool:
+        c = self.config
+        return c is not None and (c.storage_coeff != 0.0 or c.settle_s > 0)
+
+    def reset(self) -> None:
+        self._hist.clear()
+        self._inputs.clear()
+
+    def rates(self, fv: FeatureVector) -> tuple[float, float]:
+        """Push one feature vector; (dn/dt [rpm/s], dp2/dt [Pa/s]) or NaNs while settling."""
+        try:
+            t, n, p2 = fv.t_end, fv.get("n"), fv.get("p2")
+        except KeyError:
+            self.reset()
+            return float("nan"), float("nan")
+        if not (fv.valid and np.isfinite(n) and np.isfinite(p2)):
+            self.reset()
+            return float("nan"), float("nan")
+        self._hist.append((t, n, p2))
+        fuel = fv.get("fuel") if "fuel" in fv.names else float("nan")
+        self._inputs.append((t, n, fuel))
+        if self.config is not None:
+            while self._inputs and self._inputs[0][0] < t - self.config.settle_s:
+                self._inputs.popleft()
+        if len(self._hist) < self._hist.maxlen:
+            return float("nan"), float("nan")
+        t0, n0, p0 = self._hist[0]
+        dt = t - t0
+        if not dt > 0:
+            return float("nan"), float("nan")
+        return (n - n0) / dt, (p2 - p0) / dt
+
+    def settled(self) -> tuple[bool, float, float]:
+        """(inputs quasi-stationary, speed change [rpm], fuel change [mg]) over settle_s."""
+        c = self.config
+        if c is None or c.settle_s <= 0:
+            return True, 0.0, 0.0
+        arr = np.array(self._inputs)
+        if arr.shape[0] < 2 or arr[-1, 0] - arr[0, 0] < 0.8 * c.settle_s:
+            return False, float("nan"), float("nan")
+        dn = float(np.ptp(arr[:, 1]))
+        df = float(np.ptp(arr[:, 2])) if np.all(np.isfinite(arr[:, 2])) else 0.0
+        return dn <= c.max_speed_change and df <= c.max_fuel_change, dn, df
+
+    def apply(self, fv: FeatureVector, r: np.ndarray, valid: bool,
+              status: str) -> tuple[np.ndarray, bool, str]:
+        """Correct r_eta and gate one segment (r from :func:`parity_residuals`)."""
+        if not self.active:
+            return r, valid, status
+        c = self.config
+        _, dp = self.rates(fv)
+        if not valid:
+            return r, valid, status
+        ok, dn, df = self.settled()
+        if not np.isfinite(dp) or not np.isfinite(dn):
+            return r, False, "not valid here: settling (too little history after a gap)"
+        if not ok:
+            return r, False, (f"not valid here: transient inputs (speed moved {dn:.0f} rpm, "
+                              f"fuel {df:.1f} mg within {c.settle_s:g} s)")
+        r = r.copy()
+        j = c.names.index("r_eta") if "r_eta" in c.names else None
+        if j is not None and c.storage_coeff:
+            r[j] += c.storage_coeff * dp / (fv.get("n") * fv.get("p2"))
+        return r, valid, status
+
+
+def _finish(fv: FeatureVector, r: np.ndarray, valid: bool, status: str,
+            cfg: SymptomConfig | None, model_id: str) -> ResidualVector:
+    norm = float("nan")
+    if valid and cfg is not None:
+        norm = float(np.sqrt(np.mean(_z(r, cfg) ** 2)))
+    return ResidualVector(model_id=model_id, index=fv.index, t=fv.t_end, valid=valid,
+                          status=status, names=RESIDUALS, units=RESIDUAL_UNITS,
+                          values=np.asarray(r, dtype=float), norm=norm)
+
+
 # ---------------------------------------------------------------------- bank models
 THRESHOLDS_FILE = "thresholds.json"
 
@@ -407,15 +518,17 @@ class ReferenceResidualModel:
         self.model_id = model_id
         self.window = int(window)
         self._zbuf: deque = deque(maxlen=self.window)
+        self._qs = QuasiStationarity(config)
 
     def reset(self) -> None:
         self._zbuf.clear()
+        self._qs.reset()
 
     def residuals(self, fv: FeatureVector) -> ResidualVector:
         cfg = self.config
-        rv = residual_vector(self.models, fv, model_id=self.model_id,
-                             scale=cfg.scale if cfg else None,
-                             centre=cfg.centre if cfg else None)
+        rv = residual_vector(self.models, fv, model_id=self.model_id)
+        rv = _finish(fv, *self._qs.apply(fv, rv.values, rv.valid, rv.status), cfg,
+                     self.model_id)
         if self.window == 1 or not rv.valid or cfg is None:
             if not rv.valid:
                 self._zbuf.clear()
@@ -454,10 +567,12 @@ class FaultHypothesisResidualModel:
         self.penalty = float(penalty)
         self._buf: deque = deque(maxlen=self.window)
         self.size_estimate = 0.0
+        self._qs = QuasiStationarity(config)
 
     def reset(self) -> None:
         self._buf.clear()
         self.size_estimate = 0.0
+        self._qs.reset()
 
     def direction(self, n, rho2) -> np.ndarray:
         """g(n, rho2): normalised residual change per unit fault size, (N, m)."""
@@ -470,8 +585,10 @@ class FaultHypothesisResidualModel:
 
     def residuals(self, fv: FeatureVector) -> ResidualVector:
         rv = residual_vector(self.models, fv, model_id=self.model_id)
+        rv = _finish(fv, *self._qs.apply(fv, rv.values, rv.valid, rv.status), None,
+                     self.model_id)
         if not rv.valid:
-            self.reset()
+            self._buf.clear()
             return rv
         z = _z(rv.values, self.config)
         g = self.direction(fv.get("n"), fv.get("rho2"))[0]
@@ -590,7 +707,7 @@ def stream_residuals(models: ReferenceModelSet, features: Sequence[FeatureVector
         cols[k] = np.array([fv.values[fv.names.index(k)] if k in fv.names else np.nan
                             for fv in feats], dtype=float)
     R, ok = parity_residuals(models, cols)
-    c = np.asarray(config.centre) if config else 0.0
+    qs = QuasiStationarity(config)
     out = []
     for i, fv in enumerate(feats):
         has_all = all(k in fv.names for k in names)
@@ -603,12 +720,7 @@ def stream_residuals(models: ReferenceModelSet, features: Sequence[FeatureVector
             status = "not valid here: operating point outside the identified region"
         else:
             status = ""
-        norm = float("nan")
-        if valid and config is not None:
-            norm = float(np.sqrt(np.mean(((R[i] - c) / np.asarray(config.scale)) ** 2)))
-        out.append(ResidualVector(model_id=model_id, index=fv.index, t=fv.t_end, valid=valid,
-                                  status=status, names=RESIDUALS, units=RESIDUAL_UNITS,
-                                  values=R[i].copy(), norm=norm))
+        out.append(_finish(fv, *qs.apply(fv, R[i], valid, status), config, model_id))
     return out
 
 
@@ -617,3 +729,46 @@ def run_symptoms(models: ReferenceModelSet, config: SymptomConfig,
     """Nominal residuals and debounced symptoms for a stream of feature vectors (offline)."""
     gen = SymptomGenerator(config=config)
     return [gen.update(rv) for rv in stream_residuals(models, features, config=config)]
+
+
+def calibrate_from_fault_free(models: ReferenceModelSet, features: Sequence[FeatureVector], *,
+                              settle_s: float = 1.0, max_speed_change: float = 50.0,
+                              max_fuel_change: float = 1.0,
+                              rate_lag: int = 2, storage_correction: bool = True,
+                              **kw) -> SymptomConfig:
+    """Thresholds from fault-free (transient) feature vectors.
+
+    1. ``storage_coeff`` by least squares of the static r_eta on ``-(dp2/dt)/(n p2)`` over all
+       in-region segments (the transients give the leverage);
+    2. residuals corrected and gated with the rate limits;
+    3. :func:`calibrate_thresholds` on the quasi-stationary segments.
+    """
+    feats = list(features)
+    probe = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(1.0,) * 5,
+                          rate_lag=rate_lag)
+    rvs = stream_residuals(models, feats, config=probe)   # static, not gated
+    qs = QuasiStationarity(probe)
+    x, r, keep = [], [], []
+    for fv, rv in zip(feats, rvs):
+        dn, dp = qs.rates(fv)
+        if rv.valid and np.isfinite(dp):
+            x.append(-dp / (fv.get("n") * fv.get("p2")))
+            r.append(rv.values[0])
+    coeff = 0.0
+    if storage_correction and "storage_coeff" in models.info:
+        coeff = float(models.info["storage_coeff"])   # identified with the static maps
+    elif storage_correction and len(x) > 20:
+        x, r = np.asarray(x), np.asarray(r)
+        r = r - np.median(r)
+        den = float(x @ x)
+        coeff = float(x @ r / den) if den > 0 else 0.0
+    gate = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(1.0,) * 5,
+                         rate_lag=rate_lag, storage_coeff=coeff,
+                         settle_s=settle_s, max_speed_change=max_speed_change,
+                         max_fuel_change=max_fuel_change)
+    rvs = stream_residuals(models, feats, config=gate)
+    R = np.array([rv.values for rv in rvs])
+    valid = np.array([rv.valid for rv in rvs])
+    return calibrate_thresholds(R, valid, storage_coeff=coeff, settle_s=settle_s,
+                                max_speed_change=max_speed_change,
+                                max_fuel_change=max_fuel_change, rate_lag=rate_lag, **kw)

@@ -164,15 +164,13 @@ def crank_harmonics(alpha: np.ndarray, t: np.ndarray | None, values: np.ndarray,
     S = j_end - j0
     if S <= 0:
         return empty, j0
-    med = float(np.median(d))
+    h = float(d[0])
+    uniform = bool(np.all(np.abs(d - h) <= 1e-9 * max(h, 1.0)))
+    med = h if uniform else float(np.median(d))
     gap = 3.0 * med if max_gap_deg is None else float(max_gap_deg)
-    seg_start = (j0 + np.arange(S)) * D
-    t_start = np.interp(seg_start, alpha, tt) if tt is not None else np.full(S, np.nan)
-    t_end = np.interp(seg_start + D, alpha, tt) if tt is not None else np.full(S, np.nan)
-    h = med
-    uniform = (np.max(np.abs(d - h)) <= 1e-9 * max(h, 1.0) and
-               abs(D / h - round(D / h)) < 1e-9 and
+    uniform = (uniform and abs(D / h - round(D / h)) < 1e-9 and
                (alpha_prev is None or abs(alpha[0] - alpha_prev - h) <= 1e-9 * max(h, 1.0)))
+    seg_start = (j0 + np.arange(S)) * D
     i_first = int(np.searchsorted(alpha, j0 * D - 1e-9 * D))
     if uniform and i_first == 0 and alpha_prev is None and abs(alpha[0] - j0 * D) > 1e-9:
         uniform = False          # record starts inside a cell: let the general path clip it
@@ -180,6 +178,16 @@ def crank_harmonics(alpha: np.ndarray, t: np.ndarray | None, values: np.ndarray,
         coef, status = _uniform(alpha, values, j0, S, D, K, h, i_first)
     else:
         coef, status = _general(alpha, values, j0, S, D, K, alpha_prev)
+    m = int(round(D / h)) if uniform else 0
+    if tt is None:
+        t_start = t_end = np.full(S, np.nan)
+    elif uniform and abs(alpha[i_first] - j0 * D) <= 1e-9 * D and \
+            i_first + S * m < N:
+        tb = tt[i_first:i_first + S * m + 1:m]          # boundaries fall on samples
+        t_start, t_end = tb[:-1], tb[1:]
+    else:
+        t_start = np.interp(seg_start, alpha, tt)
+        t_end = np.interp(seg_start + D, alpha, tt)
     # crank-angle gaps
     if d.size and np.any(d > gap):
         big = np.nonzero(d > gap)[0]
@@ -200,6 +208,9 @@ def crank_harmonics(alpha: np.ndarray, t: np.ndarray | None, values: np.ndarray,
     return out, j_end
 
 
+_UNIFORM_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+
+
 def _uniform(alpha, values, j0, S, D, K, h, i_first):
     """Uniform grid: one weight vector and one (diagonal-ish) Gram matrix for all segments."""
     m = int(round(D / h))
@@ -210,13 +221,20 @@ def _uniform(alpha, values, j0, S, D, K, h, i_first):
     w = np.maximum(hi - lo, 0.0)
     if i_first == 0 and abs(alpha[0] - s0) <= 1e-9 * D:
         w[0] = h / 2.0
-    phi = _basis(a_loc, D, K)
-    wphi = w[:, None] * phi
-    G = phi.T @ wphi
-    Ginv = np.linalg.inv(G)
+    key = (m, D, K, round(float(a_loc[0] - s0), 9), round(float(h), 12), bool(w[0] == h / 2.0))
+    cached = _UNIFORM_CACHE.get(key)
+    if cached is None:
+        phi = _basis(a_loc, D, K)
+        wphi = w[:, None] * phi
+        Ginv = np.linalg.inv(phi.T @ wphi)
+        if len(_UNIFORM_CACHE) > 64:
+            _UNIFORM_CACHE.clear()
+        _UNIFORM_CACHE[key] = (wphi, Ginv)
+    else:
+        wphi, Ginv = cached
     C = values.shape[0]
-    X = values[:, i_first:i_first + S * m].reshape(C, S, m)
-    g = X @ wphi[:m]
+    X = values[:, i_first:i_first + S * m].reshape(C * S, m)
+    g = (X @ wphi[:m]).reshape(C, S, -1)       # one BLAS product for all segments
     tail = values[:, i_first + m: i_first + (S + 1) * m: m]
     if tail.shape[1] < S:   # last segment ends exactly on the last sample
         tail = np.concatenate([tail, values[:, -1:]], axis=1)[:, :S]

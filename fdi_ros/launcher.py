@@ -108,13 +108,25 @@ class Graph:
         raise KeyError(name)
 
     # -- processes ----------------------------------------------------------------------------
-    def start(self) -> "Graph":
+    def start(self, *, exclude: tuple[str, ...] = ()) -> "Graph":
+        """Start every node not yet started (except ``exclude``: start those later with
+        :meth:`start_node`, e.g. the plant once the bank is on line)."""
         for n in self.nodes:
-            n.proc = subprocess.Popen(n.argv, env=self.env, stdout=subprocess.PIPE,
-                                      stderr=subprocess.STDOUT, text=True,
-                                      start_new_session=True)
-            threading.Thread(target=self._pump, args=(n,), daemon=True).start()
+            if n.proc is None and n.name not in exclude:
+                self.start_node(n.name)
         return self
+
+    def start_node(self, name: str) -> None:
+        n = self.node(name)
+        n.proc = subprocess.Popen(n.argv, env=self.env, stdout=subprocess.PIPE,
+                                  stderr=subprocess.STDOUT, text=True, start_new_session=True)
+        threading.Thread(target=self._pump, args=(n,), daemon=True).start()
+
+    @property
+    def source(self) -> str:
+        """The node that feeds the graph: the plant, or the replayer."""
+        return "fdi_replayer" if any(n.name == "fdi_replayer" for n in self.nodes) \
+            else "fdi_plant"
 
     def _pump(self, n: NodeProcess) -> None:
         assert n.proc is not None and n.proc.stdout is not None

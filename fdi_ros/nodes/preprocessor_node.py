@@ -43,7 +43,14 @@ class PreprocessorNode(Node):
                                    "missing: the segment across the gap is invalid")
             self.pre.mark_gap()
         self._last_index = block.index
-        for fv in self.pre.push(block):
+        try:
+            feats = self.pre.push(block)
+        except ValueError as exc:  # e.g. crank angles going backwards (a restarted source)
+            self.get_logger().error(f"sensor block {block.index} rejected ({exc}); "
+                                    "restarting segmentation")
+            self.pre.reset()
+            return
+        for fv in feats:
             self._pub.publish(self._fac.features(fv))
 
 

@@ -23,6 +23,12 @@ A scenario file (``config/scenarios/diesel_*.yaml``)::
 ``n_ramp_s``. ``egr_cmd`` and ``swirl_cmd`` are constants there. An optional
 ``fuel_limit: {n: [...], fuel: [...]}`` (full-load curve) caps the levels per speed.
 
+``inputs.kind: zigzag`` ramps the speed slowly from ``n_min`` to ``n_max`` and back (each
+way ``n_ramp_s``) while the fuel follows a raised-cosine wave (period about
+``fuel_period_s``, adjusted so that ``n_ramp_s / period = k + 1/4``) between ``fuel_min`` and
+the ``fuel_limit`` curve; the adjustment makes the way down pass each speed half a period
+away from the way up, so the two passes interleave in the (n, rho2) plane.
+
 Several cases can share one file under ``cases:`` (a list of partial scenarios merged over
 the top-level keys); :func:`load_scenario` takes ``case=`` to pick one, and
 :func:`load_cases` returns them all.
@@ -108,6 +114,32 @@ def _sweep_points(spec: Mapping[str, Any]) -> list[dict]:
     return pts
 
 
+def _zigzag_points(spec: Mapping[str, Any]) -> list[dict]:
+    """Slow speed ramp up and down with a triangular fuel wave up to the full-load limit."""
+    n_min, n_max = float(spec["n_min"]), float(spec["n_max"])
+    ramp = float(spec.get("n_ramp_s", 180.0))
+    period = float(spec.get("fuel_period_s", 20.0))
+    f_min = float(spec.get("fuel_min", 3.0))
+    lim = spec.get("fuel_limit") or {"n": [n_min, n_max], "fuel": [40.0, 40.0]}
+    ln, lf = [float(v) for v in lim["n"]], [float(v) for v in lim["fuel"]]
+    dt = float(spec.get("step_s", 0.5))
+    egr = float(spec.get("egr_cmd", 0.0))
+    swirl = float(spec.get("swirl_cmd", 0.0))
+    # ramp / period = k + 1/4 makes the way down pass each speed half a fuel period away
+    # from the way up (the passes interleave) while the wave stays continuous at the turn
+    k = max(round(ramp / period - 0.25), 0)
+    period = ramp / (k + 0.25)
+    pts = []
+    for t in np.arange(0.0, 2.0 * ramp + dt / 2, dt):
+        n = n_min + (n_max - n_min) * (t / ramp if t <= ramp else 2.0 - t / ramp)
+        # raised cosine: no corners in the boost set point that the turbocharger must chase
+        wave = 0.5 * (1.0 - np.cos(2.0 * np.pi * t / period))
+        f_max = float(np.interp(n, ln, lf))
+        pts.append(dict(t=float(t), n=float(n), fuel=f_min + wave * (f_max - f_min),
+                        egr_cmd=egr, swirl_cmd=swirl))
+    return pts
+
+
 def _parse(d: Mapping[str, Any], where: str) -> Scenario:
     unknown = set(d) - _TOP_KEYS
     if unknown:
@@ -121,8 +153,11 @@ def _parse(d: Mapping[str, Any], where: str) -> Scenario:
         pts = list(inp.get("points") or [])
     elif kind == "sweep":
         pts = _sweep_points(inp)
+    elif kind == "zigzag":
+        pts = _zigzag_points(inp)
     else:
-        raise ValueError(f"{where}: inputs.kind must be 'points' or 'sweep', not {kind!r}")
+        raise ValueError(f"{where}: inputs.kind must be 'points', 'sweep' or 'zigzag', "
+                         f"not {kind!r}")
     if not pts:
         raise ValueError(f"{where}: the input profile has no points")
     cols: dict[str, list[float]] = {k: [] for k in ("t", "n", "fuel", "egr_cmd", "swirl_cmd")}

@@ -14,6 +14,7 @@ import argparse
 import json
 import math
 from pathlib import Path
+import sys
 
 COMMAND = ("reproduce", "turbofan")
 HELP = "reproduce the turbofan fault diagnosis of Diao & Passino (2004): 4 cases, T0 sweep"
@@ -66,13 +67,21 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--runs must be >= 1")
     model_path = Path(args.model or settings.model_path)
     report: dict = {"t0_s": t0_s, "xnh_weight": w, "model": str(model_path)}
-    if args.retrain or not model_path.exists():
+    from fdi_ros.core.turbofan.plant import plant_signature
+
+    stale = False
+    if model_path.exists() and not args.retrain:
+        gm = GlobalModel.load(model_path)
+        stale = gm.signature != plant_signature() or gm.grid != settings.grid
+        if stale:
+            print(f"{model_path}: trained on another plant version or grid; training again",
+                  file=sys.stderr)
+    if args.retrain or stale or not model_path.exists():
         from fdi_ros.commands.train_turbofan import train
 
         gm, _ = train(settings, out=model_path, progress=not args.no_progress)
         report["training"] = gm.report.as_dict()
     else:
-        gm = GlobalModel.load(model_path)
         report["training"] = gm.report.as_dict() if gm.report else None
     scenarios = [load_scenario(p, settings) for p in settings.scenarios]
     if not scenarios:

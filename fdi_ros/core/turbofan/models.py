@@ -152,6 +152,7 @@ class GlobalModel:
     f2: StackedTS
     xnl_range: tuple[float, float]  # premise range seen in training [rpm]
     report: TrainingReport | None = None
+    signature: str = ""  # plant_signature() of the plant that generated the training data
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "_sigmas", self.grid.sigmas())
@@ -202,6 +203,7 @@ class GlobalModel:
         meta = {"grid": {k: (list(v) if isinstance(v, tuple) else v)
                          for k, v in self.grid.__dict__.items()},
                 "xnl_range": list(self.xnl_range), "premise": self.f1.premise,
+                "signature": self.signature,
                 "report": self.report.as_dict() if self.report else None}
         meta["grid"]["region"] = {k: list(v) for k, v in self.grid.region.items()}
         np.savez_compressed(path, nodes=self.nodes, offset=self.f1.offset, scale=self.f1.scale,
@@ -228,7 +230,8 @@ class GlobalModel:
 
             rep = TrainingReport(**meta["report"]) if meta.get("report") else None
             model = cls(grid=grid, nodes=z["nodes"], f1=stacked("f1"), f2=stacked("f2"),
-                        xnl_range=tuple(meta["xnl_range"]), report=rep)
+                        xnl_range=tuple(meta["xnl_range"]), report=rep,
+                        signature=str(meta.get("signature", "")))
         except (KeyError, ValueError, OSError) as exc:
             raise ValueError(f"{path}: not a turbofan global model file ({exc})") from exc
         if model.nodes.shape != (model.f1.centers.shape[0], 7):
@@ -331,4 +334,5 @@ def train_global(grid: GridSpec, *, n_rules: int = 3, seed: int = 0, duration_s:
     return GlobalModel(grid=grid, nodes=nodes,
                        f1=StackedTS.stack([f.model for f in fits1]),
                        f2=StackedTS.stack([f.model for f in fits2]),
-                       xnl_range=(float(xnl.min()), float(xnl.max())), report=report)
+                       xnl_range=(float(xnl.min()), float(xnl.max())), report=report,
+                       signature=tfp.plant_signature(plant.k))

@@ -74,7 +74,7 @@ PAPER_MANUFACTURING = np.array([0.1, 0.1, 0.2, 0.1, -0.1, 0.0, -0.3, 0.3, -0.1, 
 DETERIORATION_FULL = np.array([-1.5, -2.0, -1.5, -2.0, -1.5, -2.0, 1.0, -2.0, 1.0, -2.0]) * 1e-2
 #: fault signatures: relative quality change of a *small* fault (one unit size).
 FAULT_DIRECTIONS = {
-    "fan": {"fan_flow": -0.5e-2, "fan_eff": -1.0e-2},
+    "fan": {"fan_flow": -0.75e-2, "fan_eff": -1.5e-2},
     "hub": {"hub_flow": -2.0e-2, "hub_eff": -6.0e-2},
 }
 #: size words in units of the small fault, per fault type. Chosen so that the 16 situations
@@ -343,6 +343,18 @@ class Turbofan:
             y[..., 0] += rng.normal(0.0, self.k.noise_xnl, y.shape[:-1])
             y[..., 1] += rng.normal(0.0, self.k.noise_xnh, y.shape[:-1])
         return {"t": np.arange(n) * ts, "x": xs, "xdot": xd, "y": y, "wf": wf}
+
+
+def plant_signature(constants: PlantConstants | None = None) -> str:
+    """Short hash of everything that shapes the simulated data (constants, deterioration and
+    fault definitions): a model trained on another plant version is stale."""
+    import hashlib
+    import json
+
+    k = constants or PlantConstants()
+    doc = {"k": k.__dict__, "det": DETERIORATION_FULL.tolist(), "dirs": FAULT_DIRECTIONS,
+           "sizes": FAULT_SIZES}
+    return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def newton_equilibrium(fun, x0: np.ndarray, *, h: float = 0.5, tol: float = 1e-3,

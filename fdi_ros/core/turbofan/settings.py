@@ -54,15 +54,19 @@ class TurbofanSettings:
             raise ValueError("n_rules and max_nfev must be >= 1")
 
 
+def _read_yaml(p: Path, what: str):
+    if not p.is_file():
+        raise FileNotFoundError(f"{what} {p} not found")
+    try:
+        return yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{p}: not valid YAML: {exc}") from exc
+
+
 def load_settings(path: str | Path = DEFAULT_CONFIG) -> TurbofanSettings:
     """Read the ``turbofan:`` section of a graph configuration file."""
     p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"turbofan configuration {p} not found")
-    try:
-        doc = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{p}: not valid YAML: {exc}") from exc
+    doc = _read_yaml(p, "turbofan configuration")
     if not isinstance(doc, dict) or not isinstance(doc.get("turbofan"), dict):
         raise ValueError(f"{p}: no 'turbofan:' section")
     sec = dict(doc["turbofan"])
@@ -84,12 +88,7 @@ def load_scenario(path: str | Path, settings: TurbofanSettings) -> Scenario:
     optional ``condition``, ``deterioration``, ``manufacturing``, ``seed`` override the
     settings."""
     p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"scenario {p} not found")
-    try:
-        doc = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{p}: not valid YAML: {exc}") from exc
+    doc = _read_yaml(p, "scenario")
     known = {"name", "description", "duration_s", "events", "paper", "condition",
              "deterioration", "manufacturing", "seed"}
     if not isinstance(doc, dict) or set(doc) - known:

@@ -29,7 +29,19 @@ from scipy.optimize import least_squares
 
 
 @dataclass(frozen=True)
-class TakagiSugeno:
+class _TSParameters:
+    """Parameters of one (or, with leading batch axes, many) Takagi-Sugeno systems."""
+
+    centers: np.ndarray
+    sigmas: np.ndarray
+    coef: np.ndarray
+    offset: np.ndarray
+    scale: np.ndarray
+    premise: int = 0
+
+
+@dataclass(frozen=True)
+class TakagiSugeno(_TSParameters):
     """A fitted Takagi-Sugeno system (immutable).
 
     Attributes
@@ -39,13 +51,6 @@ class TakagiSugeno:
     offset, scale : (n_in,) input normalisation ``z = (x - offset) / scale``.
     premise : index of the premise input.
     """
-
-    centers: np.ndarray
-    sigmas: np.ndarray
-    coef: np.ndarray
-    offset: np.ndarray
-    scale: np.ndarray
-    premise: int = 0
 
     def __post_init__(self) -> None:
         r = self.centers.shape[0]
@@ -197,18 +202,11 @@ def fit_ts(x: np.ndarray, y: np.ndarray, *, n_rules: int = 3, premise: int = 0,
 
 
 @dataclass(frozen=True)
-class StackedTS:
+class StackedTS(_TSParameters):
     """Many Takagi-Sugeno systems with the same shape, evaluated together (batch axes first).
 
     ``centers, sigmas`` (..., R); ``coef`` (..., R, n_in+1); one shared ``offset, scale``.
     """
-
-    centers: np.ndarray
-    sigmas: np.ndarray
-    coef: np.ndarray
-    offset: np.ndarray
-    scale: np.ndarray
-    premise: int = 0
 
     @classmethod
     def stack(cls, models: list[TakagiSugeno]) -> StackedTS:

@@ -24,6 +24,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=None, help="noise seed override")
 
 
+def _save(fig, path, written: list[str], *, tight: bool = True) -> None:
+    import matplotlib.pyplot as plt
+    if tight:
+        fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    written.append(str(path))
+
+
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -70,11 +79,7 @@ def run(args: argparse.Namespace) -> int:
     ax.set_title(f"MAF over one 180 deg CA segment, {n:.0f} rpm: phase {ph:.1f} deg CA")
     ax.legend(loc="lower right", fontsize=8)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    p4 = out / "fig4_maf_segment.png"
-    fig.savefig(p4, dpi=130)
-    plt.close(fig)
-    written.append(str(p4))
+    _save(fig, out / "fig4_maf_segment.png", written)
 
     # --- Fig. 7 and the feature overview from the identification cycle
     res = simulate(scen, seed=args.seed, keep_blocks=False)
@@ -91,11 +96,7 @@ def run(args: argparse.Namespace) -> int:
     ax.text(0.03, 0.95, "low speed + high boost:\nnot reachable", transform=ax.transAxes,
             va="top", fontsize=9, color="0.3")
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    p7 = out / "fig7_ident_coverage.png"
-    fig.savefig(p7, dpi=130)
-    plt.close(fig)
-    written.append(str(p7))
+    _save(fig, out / "fig7_ident_coverage.png", written)
 
     fig, axs = plt.subplots(2, 2, figsize=(10, 7.5))
     for ax, (k, lab) in zip(axs.flat, [("eta_v", "eta_V [1]"), ("maf_amp", "A_maf [kg/h]"),
@@ -108,9 +109,6 @@ def run(args: argparse.Namespace) -> int:
         ax.grid(alpha=0.3)
     fig.colorbar(sc, ax=axs, label="rho2 [kg/m^3]", shrink=0.8)
     fig.suptitle("Identification-cycle segment features (EGR closed, swirl open)")
-    p9 = out / "ident_features.png"
-    fig.savefig(p9, dpi=110)
-    plt.close(fig)
-    written.append(str(p9))
+    _save(fig, out / "ident_features.png", written, tight=False)
     print(json.dumps({"figures": written, "segments": int(ok.sum())}))
     return 0

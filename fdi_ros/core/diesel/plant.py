@@ -225,6 +225,15 @@ def eta_true(n, rho2, p: DieselParams):
     return p.c_eta * heating * friction * ram
 
 
+def _eta_scalar(n: float, rho2: float, p: DieselParams) -> float:
+    """:func:`eta_true` for scalars (the slow loop calls it twice per step)."""
+    n = max(n, 100.0)
+    rho2 = max(rho2, 0.2)
+    dT = p.dT_heat * (1000.0 / n) ** p.heat_n_exp * (1.2 / rho2) ** p.heat_rho_exp
+    return (p.c_eta * 320.0 / (320.0 + dT) * (1.0 - p.c_fr * (n / p.n_ref) ** 2)
+            * (1.0 + p.a_ram * math.exp(-((n - p.n_ram) / p.w_ram) ** 2)))
+
+
 def boost_setpoint(n, fuel_mg, p: DieselParams):
     """Boost pressure set point [Pa]: ``p_amb + min(dp_max * s(n), k_sp * fuel)``.
 
@@ -439,7 +448,7 @@ class DieselIntakePlant:
         # manifold temperature from the intercooler outlet and the EGR gas (mixing below)
         T2 = x.get("T2", 320.0)
         rho2 = p2 / (p.R * T2)
-        eta0 = float(eta_true(n, rho2, p))
+        eta0 = _eta_scalar(n, rho2, p)
         m_th = n / 120.0 * p.V_D * rho2
         m_cyl0 = eta0 * m_th
         # port loss at the per-cylinder peak flow; the share left at IVC lowers the charge
@@ -555,7 +564,8 @@ class DieselIntakePlant:
         E = x["E"] + dt * (a["P_t"] - a["P_c"] - p.c_fr_tc * w ** 2)
         x["E"] = max(E, 0.5 * p.J_tc * p.w_tc_min ** 2)
         # boost PI controller on the (fast, unbiased) p2 sensor mean, anti-windup
-        p2_sp = float(boost_setpoint(inp["n"], inp["fuel"], p))
+        s_n = min(max((inp["n"] - p.n_sp_lo) / (p.n_sp_hi - p.n_sp_lo), 0.0), 1.0)
+        p2_sp = p.p_amb + min(p.dp_sp_max * s_n, p.k_sp * max(inp["fuel"], 0.0))
         e = (p2_sp - p2) / 1e5
         u = p.Kp * e + x["I"]
         if (0.0 < u < 1.0) or (u >= 1.0 and e < 0) or (u <= 0.0 and e > 0):
@@ -604,28 +614,31 @@ class DieselIntakePlant:
                     a_port=a["a_port"], dp_port=a["dp_port"], rho2=a["rho2"])
 
     # ------------------------------------------------------------------ stepping and sampling
-    def _run_steps(self, n_steps: int) -> dict[str, np.ndarray]:
-        """Integrate n_steps slow steps; returns per-step records incl. pulsation harmonics."""
+    def _run_until(self, alpha_end: float) -> dict[str, np.ndarray]:
+        """Integrate slow steps until one lies beyond ``alpha_end`` [deg CA].
+
+        Returns the per-step records incl. pulsation harmonics. The crank angle of each step
+        follows from the recorded speeds (linear between steps, so the trapezoid is exact),
+        also across a step change of :meth:`set_inputs`. At most one step is computed past
+        the requested angle, so new inputs and faults act within one step (``params.dt``).
+        """
         p = self.p
         recs = []
         t = self._last.get("t", 0.0)
-        alpha = self._last.get("alpha", 0.0)
+        alpha = self._last.get("alpha")
         n_prev = self._last.get("n")
-        for _ in range(n_steps):
+        while True:
             inp = self._current_inputs(t)
             if not self._initialised:
                 self._init_state(inp)
-                n_prev = inp["n"]
-            if n_prev is None:
-                n_prev = inp["n"]
             rec = self._step(t, inp, self._faults.sizes(t))
+            alpha = 0.0 if alpha is None else alpha + 3.0 * (n_prev + rec["n"]) * p.dt
+            n_prev = rec["n"]
             rec["alpha"] = alpha
             recs.append(rec)
-            # crank angle: speed linear within the step (trapezoid = exact for a linear ramp)
-            n_next = self._current_inputs(t + p.dt)["n"]
-            alpha += 6.0 * 0.5 * (inp["n"] + n_next) * p.dt
             t += p.dt
-            n_prev = n_next
+            if alpha > alpha_end:
+                break
         self._last = dict(t=t, alpha=alpha, n=n_prev)
         out = {k: np.array([r[k] for r in recs], dtype=float) for k in recs[0]}
         out["X_maf"], out["X_p2"] = pulsation_harmonics(out, p, self._c_suction)
@@ -659,10 +672,9 @@ class DieselIntakePlant:
         alpha = (i0 + np.arange(n_samples)) * self.dalpha
         a_end = alpha[-1]
         while self._hist is None or self._hist["alpha"][-1] <= a_end:
-            n_now = self._current_inputs(self._last.get("t", 0.0))["n"]
+            # chunks of at most ~1 s of engine time keep the record arrays small
             a_have = self._hist["alpha"][-1] if self._hist is not None else 0.0
-            need = int(math.ceil((a_end - a_have) / (6.0 * n_now * p.dt))) + 2
-            self._append_hist(self._run_steps(min(max(need, 4), 20000)))
+            self._append_hist(self._run_until(min(a_end, a_have + 36000.0)))
         h = self._hist
         k = np.searchsorted(h["alpha"], alpha, side="right") - 1
         k = np.clip(k, 0, h["alpha"].size - 2)

@@ -82,8 +82,14 @@ class Scenario:
             i = max(int(np.searchsorted(self.t, t, side="right")) - 1, 0)
             return (float(self.n[i]), float(self.fuel[i]), float(self.egr_cmd[i]),
                     float(self.swirl_cmd[i]))
-        return tuple(float(np.interp(t, self.t, v)) for v in   # type: ignore[return-value]
-                     (self.n, self.fuel, self.egr_cmd, self.swirl_cmd))
+        i = int(np.searchsorted(self.t, t, side="right")) - 1
+        if i < 0 or i >= self.t.size - 1:
+            j = 0 if i < 0 else self.t.size - 1
+            return (float(self.n[j]), float(self.fuel[j]), float(self.egr_cmd[j]),
+                    float(self.swirl_cmd[j]))
+        w = (t - self.t[i]) / (self.t[i + 1] - self.t[i]) if self.t[i + 1] > self.t[i] else 1.0
+        return tuple(float(v[i] + w * (v[i + 1] - v[i]))   # type: ignore[return-value]
+                     for v in (self.n, self.fuel, self.egr_cmd, self.swirl_cmd))
 
 
 def _sweep_points(spec: Mapping[str, Any]) -> list[dict]:

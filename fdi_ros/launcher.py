@@ -78,6 +78,9 @@ class Graph:
             sections.setdefault("fdi_replayer", {})["bag"] = str(Path(replay).resolve())
         else:
             sections.pop("fdi_replayer", None)
+        plant = sections.get("fdi_plant")
+        if plant and plant.get("scenario"):
+            plant["scenario"] = self.cfg.resolve(str(plant["scenario"]))
         if record is not None:
             sections.setdefault("fdi_recorder", {})["bag"] = str(Path(record).resolve())
         else:
@@ -85,8 +88,9 @@ class Graph:
         self.nodes: list[NodeProcess] = []
         # bank models first: the supervisor finds their services when it starts
         for e in self.cfg.bank:
-            spec = e.model if isinstance(e.model, str) else yaml.safe_dump(
-                _resolve_spec(self.cfg, e.model), default_flow_style=True).strip()
+            spec = self.cfg.resolve_spec(e.model)
+            if not isinstance(spec, str):
+                spec = yaml.safe_dump(spec, default_flow_style=True, width=10_000).strip()
             self._add(e.node_name, "residual_node", {"model_id": e.id, "model": spec})
         order = ["fdi_recorder", "fdi_supervisor", "fdi_preprocessor", "fdi_plant",
                  "fdi_replayer"]
@@ -174,12 +178,6 @@ class Graph:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
-
-
-def _resolve_spec(cfg: GraphConfig, spec: Any) -> Any:
-    if isinstance(spec, dict) and isinstance(spec.get("path"), str):
-        return {**spec, "path": cfg.resolve(spec["path"])}
-    return spec
 
 
 def run_until_interrupted(graph: Graph) -> int:

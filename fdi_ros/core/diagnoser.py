@@ -76,27 +76,49 @@ class Diagnoser:
 
     @property
     def models_online(self) -> tuple[str, ...]:
-        return self.supervisor.models_online
+        """Models whose residuals are needed now: the supervisor's on-line set plus the
+        reference model whose residuals give the symptoms (it never goes off line)."""
+        online = self.supervisor.models_online
+        if self.reference_id and self.reference_id not in online:
+            return (self.reference_id, *online)
+        return online
 
     def update(self, index: int, t: float,
                residuals: Mapping[str, ResidualVector]) -> Step:
-        before = self.supervisor.models_online
+        before = self.models_online
         symptoms = None
         candidates: tuple[str, ...] = ()
-        if self.symptom_gen is not None and self.reference_id in residuals:
-            symptoms = self.symptom_gen.update(residuals[self.reference_id])
-            if symptoms.valid and any(symptoms.levels) and self.table is not None:
+        feed: dict[str, ResidualVector] = dict(residuals)
+        if self.symptom_gen is not None:
+            ref = residuals.get(self.reference_id)
+            if ref is not None:
+                symptoms = self.symptom_gen.update(ref)
+            active = symptoms is not None and symptoms.valid and any(symptoms.levels)
+            if active and self.table is not None:
                 from fdi_ros.core.diesel.symptoms import isolate
 
                 candidates = tuple(isolate(symptoms.as_table_order(), self.table))
-        d = self.supervisor.update(t, residuals)
-        # A symptom is a detection too (the parity-equation path of the diesel method).
+            if not self.supervisor.isolated:
+                if not active:
+                    # No symptom: the reference model explains the data by definition; the
+                    # hypotheses do not compete (the parity equations detect, the bank
+                    # isolates).
+                    if ref is not None and ref.valid:
+                        feed[self.reference_id] = replace(ref, norm=0.0)
+                elif candidates:
+                    # The fault-symptom table narrows the hypotheses that may compete.
+                    keep = {m.id for m in self.supervisor.bank
+                            if not m.faults or m.fault_types & set(candidates)}
+                    feed = {k: v for k, v in feed.items() if k in keep}
+        d = self.supervisor.update(t, feed)
         if symptoms is not None and symptoms.valid and any(symptoms.levels) \
                 and math.isnan(self.detection_time):
-            self.detection_time = t
+            self.detection_time = t  # a symptom is a detection (the parity-equation path)
         if not math.isnan(d.detection_time) and math.isnan(self.detection_time):
             self.detection_time = d.detection_time
         state = d.state
+        if state == "not_valid" and self.supervisor.isolated:
+            state = "isolated"  # a step without valid residuals does not undo an isolation
         if symptoms is not None and not symptoms.valid and state == "no_fault":
             state = "not_valid"
         if symptoms is not None and symptoms.valid and any(symptoms.levels) \
@@ -104,8 +126,8 @@ class Diagnoser:
             state = "detected"
         d = replace(d, index=int(index), state=state,
                     candidate_faults=candidates or d.candidate_faults,
-                    detection_time=self.detection_time)
-        after = self.supervisor.models_online
+                    models_online=self.models_online, detection_time=self.detection_time)
+        after = self.models_online
         added = tuple(m for m in after if m not in before)
         removed = tuple(m for m in before if m not in after)
         return Step(d, symptoms, bool(added or removed), added, removed)
@@ -122,7 +144,7 @@ def diagnose_offline(cfg: GraphConfig, features: Iterable[FeatureVector], *,
     from fdi_ros.core.residual_models import load_residual_model
 
     if models is None:
-        models = {e.id: load_residual_model(_spec(cfg, e.model), model_id=e.id)
+        models = {e.id: load_residual_model(cfg.resolve_spec(e.model), model_id=e.id)
                   for e in cfg.bank}
     diag = Diagnoser(cfg)
     out = []
@@ -142,9 +164,3 @@ def diagnose_offline(cfg: GraphConfig, features: Iterable[FeatureVector], *,
         out.append((fv, res, step))
     return out
 
-
-def _spec(cfg: GraphConfig, spec: Any) -> Any:
-    """Model specs may name files relative to the repository: resolve them."""
-    if isinstance(spec, dict) and isinstance(spec.get("path"), str):
-        return {**spec, "path": cfg.resolve(spec["path"])}
-    return spec

@@ -62,6 +62,16 @@ class GraphConfig:
                 return e
         raise KeyError(f"no bank model {model_id!r} in {self.path}")
 
+    def resolve_spec(self, spec: Any) -> Any:
+        """A model spec with its relative paths (any string value naming a path with '/')
+        made absolute against the repository root."""
+        if isinstance(spec, dict):
+            return {k: (self.resolve(v) if isinstance(v, str) and "/" in v else v)
+                    for k, v in spec.items()}
+        if isinstance(spec, str) and "/" in spec and not spec.lstrip().startswith("{"):
+            return self.resolve(spec)
+        return spec
+
     def resolve(self, value: str) -> str:
         """A path relative to the repository root (the config's parent's parent) or absolute."""
         p = Path(value)

@@ -48,7 +48,7 @@ class PlantNode(Node):
         self._fac = msgs.MessageFactory("rclpy")
         self._pub = self.create_publisher(SensorBlock, "/fdi/sensor_block", DATA_QOS)
         self._truth = self.create_publisher(FaultEvent, "/fdi/fault_truth", LATCHED_QOS)
-        self._clock = (self.create_publisher(Clock, "/clock", 10)
+        self._clock_pub = (self.create_publisher(Clock, "/clock", 10)
                        if p("publish_clock").value else None)
         self._Clock = Clock
         self.create_subscription(FaultEvent, "/fdi/fault_inject", self._on_inject, LATCHED_QOS)
@@ -89,11 +89,11 @@ class PlantNode(Node):
                 self.get_logger().info(f"fault active: {ev.fault} {ev.size} {ev.size_unit} "
                                        f"at t = {ev.t:.3f} s")
             self._pub.publish(self._fac.sensor_block(block))
-            if self._clock is not None:
+            if self._clock_pub is not None:
                 sec, nsec = msgs.stamp_fields(float(block.t[-1]))
                 c = self._Clock()
                 c.clock.sec, c.clock.nanosec = sec, nsec
-                self._clock.publish(c)
+                self._clock_pub.publish(c)
 
 
 def main(args: list[str] | None = None) -> int:

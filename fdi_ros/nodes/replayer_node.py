@@ -44,7 +44,7 @@ class ReplayerNode(Node):
                 continue
             qos = LATCHED_QOS if t.startswith("/fdi/fault_") else DATA_QOS
             self._pubs[t] = self.create_publisher(_msg_class(available[t][0]), t, qos)
-        self._clock = (self.create_publisher(Clock, "/clock", 10)
+        self._clock_pub = (self.create_publisher(Clock, "/clock", 10)
                        if self.get_parameter("publish_clock").value else None)
         self._Clock = Clock
         self._it = bagio.read(path, list(self._pubs), raw=True)
@@ -80,10 +80,10 @@ class ReplayerNode(Node):
                 for p in self._pubs.values():  # max rate: stay within what readers acknowledge
                     p.wait_for_all_acked()
             self._pubs[topic].publish(bytes(data))
-            if self._clock is not None:
+            if self._clock_pub is not None:
                 c = self._Clock()
                 c.clock.sec, c.clock.nanosec = divmod(t_ns, 1_000_000_000)
-                self._clock.publish(c)
+                self._clock_pub.publish(c)
             self.count += 1
             self._next = None
 

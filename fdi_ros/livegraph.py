@@ -1,0 +1,178 @@
+"""Run a graph configuration live with a scenario, watch it, and summarise what happened.
+
+Shared by ``fdi-ros demo``, ``fdi-ros bench graph`` and the graph tests, so they all exercise
+the same real thing: separate node processes over DDS, the bank brought on line through the
+lifecycle services before the plant starts, a fault injected, the supervisor's answer watched
+from this process.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+from fdi_ros.graphwatch import GraphWatcher
+from fdi_ros.launcher import Graph
+
+
+@dataclass
+class LiveRun:
+    """What a live run produced (times are plant time [s] unless named wall)."""
+
+    fault_onset: float = math.nan
+    fault: str = ""
+    first_symptom_t: float = math.nan
+    first_symptom: dict = field(default_factory=dict)
+    detection_t: float = math.nan
+    isolation_t: float = math.nan
+    isolated_faults: tuple[str, ...] = ()
+    switches: list[dict] = field(default_factory=list)
+    lifecycle_after: dict[str, str] = field(default_factory=dict)
+    segments: int = 0
+    final_t: float = math.nan
+    wall_s: float = math.nan
+    bag: str | None = None
+
+    def as_dict(self) -> dict:
+        def r(x: float) -> float | None:
+            return None if x is None or (isinstance(x, float) and math.isnan(x)) else round(x, 4)
+
+        return {
+            "fault": self.fault, "fault_onset_s": r(self.fault_onset),
+            "first_symptom_s": r(self.first_symptom_t), "first_symptom": self.first_symptom,
+            "detection_s": r(self.detection_t),
+            "detection_delay_s": r(self.detection_t - self.fault_onset),
+            "isolation_s": r(self.isolation_t),
+            "isolation_delay_s": r(self.isolation_t - self.fault_onset),
+            "isolated_faults": list(self.isolated_faults), "bank_switches": self.switches,
+            "lifecycle_states_after": self.lifecycle_after, "segments": self.segments,
+            "plant_time_s": r(self.final_t), "wall_s": r(self.wall_s), "bag": self.bag,
+        }
+
+
+def bank_ready(w: GraphWatcher, model_ids: list[str]) -> bool:
+    """Every model's node reached the state the supervisor wants (per /diagnostics)."""
+    for mid in model_ids:
+        st = w.diagnostic_status(f"fdi_supervisor: model {mid}")
+        if st is None:
+            return False
+        kv = {v.key: v.value for v in st.values}
+        if kv.get("state") != kv.get("wanted"):
+            return False
+    return True
+
+
+def run_live(config: str | Path, *, scenario: str | Path | None = None,
+             record: str | Path | None = None, replay: str | Path | None = None,
+             realtime_factor: float = 1.0, timeout_s: float = 120.0,
+             during: Callable[[Graph, GraphWatcher, LiveRun], None] | None = None,
+             echo: Callable[[str], None] | None = None, watch_features: bool = False,
+             log: Callable[[str], None] = lambda s: None,
+             stop_after_isolation_s: float | None = None) -> tuple[LiveRun, GraphWatcher]:
+    """Launch, bring the bank on line, start the plant (or replayer), watch until the source
+    finishes (or ``stop_after_isolation_s`` plant seconds after an isolation), stop.
+
+    ``during(graph, watcher, run)`` is called on every watch iteration (tests kill nodes
+    from it). Returns the run summary and the (closed) watcher with everything it saw.
+    """
+    over: dict[str, dict] = {"fdi_plant": {"realtime_factor": realtime_factor},
+                             "fdi_replayer": {"rate": realtime_factor, "start_delay_s": 0.5}}
+    if scenario is not None:
+        over["fdi_plant"]["scenario"] = str(Path(scenario).resolve())
+    graph = Graph(config, overrides=over, record=record, replay=replay, echo=echo)
+    w = GraphWatcher(watch_features=watch_features)
+    run = LiveRun(bag=str(record) if record else None)
+    bank = [e.id for e in graph.cfg.bank]
+    source = graph.source
+    wall0 = time.monotonic()
+    try:
+        graph.start(exclude=(source,))
+        alive = lambda: all(v for k, v in graph.alive().items() if k != source)  # noqa: E731
+        w.spin_until(lambda: bank_ready(w, bank), 90.0, "the bank's lifecycle states", alive)
+        log(f"bank ready in {time.monotonic() - wall0:.1f} s: "
+            f"{', '.join(graph.cfg.entry(m).node_name for m in bank)}")
+        graph.start_node(source)
+        deadline = time.monotonic() + timeout_s
+        last_state = ""
+        online: tuple[str, ...] = ()
+        seen_switch = 0
+        while time.monotonic() < deadline:
+            w.executor.spin_once(timeout_sec=0.05)
+            if during is not None:
+                during(graph, w, run)
+            if w.seen.truth and math.isnan(run.fault_onset):
+                ev = w.seen.truth[0][1]
+                run.fault_onset, run.fault = ev.t, ev.fault
+                log(f"t = {ev.t:7.3f} s  fault injected: {ev.fault} {ev.size:g} {ev.size_unit}")
+            _scan_symptoms(w, run, log)
+            for _, d in w.seen.diagnoses[seen_switch:]:
+                seen_switch += 1
+                run.segments += 1
+                run.final_t = d.t
+                if d.state != last_state:
+                    log(f"t = {d.t:7.3f} s  supervisor: {d.state}; I* = "
+                        f"{d.min_residual_model or '-'}; F* = {d.fault_model}; candidates "
+                        f"{list(d.candidate_faults)}")
+                    last_state = d.state
+                if not math.isnan(d.detection_time) and math.isnan(run.detection_t):
+                    run.detection_t = d.detection_time
+                if d.state == "isolated" and math.isnan(run.isolation_t):
+                    run.isolation_t, run.isolated_faults = d.isolation_time, d.isolated_faults
+                if online and d.models_online != online:
+                    sw = {"t": round(d.t, 4), "off_line": sorted(set(online) -
+                                                                  set(d.models_online)),
+                          "on_line": sorted(set(d.models_online) - set(online))}
+                    run.switches.append(sw)
+                    log(f"t = {d.t:7.3f} s  bank switch: off line {sw['off_line']}, on line "
+                        f"{sw['on_line']}")
+                online = d.models_online
+            src = graph.node(source)
+            finished = any("finished" in line for line in src.lines)
+            if finished and _quiet(w):
+                break
+            if stop_after_isolation_s is not None and not math.isnan(run.isolation_t) \
+                    and run.final_t >= run.isolation_t + stop_after_isolation_s:
+                break
+            if src.proc is not None and src.proc.poll() is not None:
+                raise RuntimeError(f"{source} exited: {src.lines[-5:]}")
+        else:
+            log(f"timed out after {timeout_s} s")
+        if run.switches:  # confirm the bank switch with the standard get_state service
+            w.spin_until(lambda: bank_ready(w, bank), 30.0, "the switched bank")
+            for mid in bank:
+                e = graph.cfg.entry(mid)
+                run.lifecycle_after[mid] = w.lifecycle_state(e.node_name)
+    finally:
+        run.wall_s = time.monotonic() - wall0
+        graph.stop()
+        w.close()
+    return run, w
+
+
+def _quiet(w: GraphWatcher, idle_s: float = 1.0) -> bool:
+    """No diagnosis for ``idle_s`` wall seconds: the pipeline has drained."""
+    return bool(w.seen.diagnoses) and time.monotonic() - w.seen.diagnoses[-1][0] > idle_s
+
+
+def _scan_symptoms(w: GraphWatcher, run: LiveRun, log: Callable[[str], None]) -> None:
+    if not math.isnan(run.first_symptom_t):
+        return
+    for _, m in w.seen.symptoms:
+        if m.valid and any(int(v) for v in m.levels) and m.t_s >= (
+                run.fault_onset if not math.isnan(run.fault_onset) else -math.inf):
+            run.first_symptom_t = float(m.t_s)
+            code = {-1: "-", 0: "o", 1: "+", 2: "++"}
+            run.first_symptom = {n: code[int(v)] for n, v in zip(m.names, m.levels)}
+            log(f"t = {m.t_s:7.3f} s  first symptom: {run.first_symptom}")
+            return
+
+
+def first_symptom_arrival(w: GraphWatcher, onset: float) -> Any:
+    """(wall arrival, message) of the first symptom message at or after the fault onset."""
+    for wall, m in w.seen.symptoms:
+        if m.valid and any(int(v) for v in m.levels) and m.t_s >= onset:
+            return wall, m
+    return None

@@ -145,3 +145,42 @@ def test_longest_wrong_hold_agrees_with_the_supervisor(gm):
             assert bool(sup.isolated) == bool(hold[r] >= t0 - 1e-9), (t0, r, hold[r])
     # a large manufacturing spread must produce some wrong minimum somewhere
     assert hold.max() > 0.0
+
+
+def test_live_runner_preprocessor_and_bank_isolate_a_hub_fault(model_file):
+    from fdi_ros.core.plants import make_preprocessor, make_runner
+
+    scenario = {"name": "live", "duration_s": 8.0, "seed": 4,
+                "events": [{"t": 3.0, "faults": {"hub": "small"}}]}
+    runner = make_runner("turbofan", scenario)
+    pre = make_preprocessor("turbofan")
+    spec = {"type": "turbofan_ts", "path": str(model_file), "condition": list(C0),
+            "deterioration": 0.1, "xnh_weight": 0.25}
+    models = {m.id: load_residual_model(spec, model_id=m.id) for m in tfb.PAPER_BANK}
+    sup = ExpertSupervisor(bank=tfb.PAPER_BANK, t0_s=1.2)
+    truth = []
+    while not runner.done:
+        block = runner.next_block()
+        assert block.channels == ("XN2", "XNH", "WF36") and block.values.shape[1] == 5
+        truth += runner.pop_truth()
+        for fv in pre.push(block):
+            d = sup.update(fv.t_start, {mid: models[mid].residuals(fv)
+                                        for mid in sup.models_online})
+    assert [e.fault for e in truth] == ["hub_small"] and truth[0].t == 3.0
+    assert d.state == "isolated" and d.fault_model == "hub_small"
+    iso = [t for t, kind, m in sup.history if kind == "isolated"]
+    assert len(iso) == 1 and 3.0 < iso[0] < 6.0
+    # run-time injection: a large fan fault, ramped, then cleared
+    run2 = make_runner("turbofan", {"name": "inj", "duration_s": 3.0, "events": []})
+    from fdi_ros.core.types import FaultEvent
+
+    run2.inject(FaultEvent(t=0.5, fault="fan", size=3.0, size_unit="small", profile="ramp",
+                           ramp_s=1.0))
+    run2.inject(FaultEvent(t=2.0, fault=""))
+    np.testing.assert_allclose(run2._quality(1.0) - run2._quality(0.0),
+                               1.5 * tfp.fault_vector("fan"))
+    np.testing.assert_allclose(run2._quality(2.5), run2._quality(0.0))
+    with pytest.raises(ValueError, match="unknown fault"):
+        run2.inject(FaultEvent(t=1.0, fault="hub_gigantic"))
+    with pytest.raises(ValueError, match="size"):
+        run2.inject(FaultEvent(t=1.0, fault="hub", size=-1.0))

@@ -296,6 +296,15 @@ class Turbofan:
         raise ValueError(f"no fuel schedule found for condition {c}")
 
     # -- simulation -----------------------------------------------------------------------------
+    def step(self, x, wf, c, p) -> tuple[np.ndarray, np.ndarray]:
+        """One classical RK4 step of Ts with fuel held: (x(k+1), dx/dt at x(k))."""
+        ts = self.k.Ts
+        k1 = self.derivatives(x, wf, c, p)
+        k2 = self.derivatives(x + 0.5 * ts * k1, wf, c, p)
+        k3 = self.derivatives(x + 0.5 * ts * k2, wf, c, p)
+        k4 = self.derivatives(x + ts * k3, wf, c, p)
+        return x + ts / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4), k1
+
     def simulate(self, wf: np.ndarray, c, p, *, x0=None, rng: np.random.Generator | None = None,
                  noise: bool = True) -> dict:
         """Simulate fuel profile(s) ``wf`` (..., n) [kg/s] with RK4 at Ts.
@@ -325,15 +334,9 @@ class Turbofan:
         x = self.trim(wf[..., 0], c, p_at(0)) if x0 is None else np.asarray(x0, dtype=float)
         xs = np.empty(wf.shape + (2,))
         xd = np.empty(wf.shape + (2,))
-        ts = self.k.Ts
         for k in range(n):
-            u, pk = wf[..., k], p_at(k)
-            k1 = self.derivatives(x, u, c, pk)
-            xs[..., k, :], xd[..., k, :] = x, k1
-            k2 = self.derivatives(x + 0.5 * ts * k1, u, c, pk)
-            k3 = self.derivatives(x + 0.5 * ts * k2, u, c, pk)
-            k4 = self.derivatives(x + ts * k3, u, c, pk)
-            x = x + ts / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+            xs[..., k, :] = x
+            x, xd[..., k, :] = self.step(x, wf[..., k], c, p_at(k))
         if not np.all(np.isfinite(xs)):
             raise ValueError("turbofan simulation diverged")
         y = xs.copy()
@@ -342,7 +345,7 @@ class Turbofan:
                 raise ValueError("simulate(noise=True) needs rng=np.random.default_rng(seed)")
             y[..., 0] += rng.normal(0.0, self.k.noise_xnl, y.shape[:-1])
             y[..., 1] += rng.normal(0.0, self.k.noise_xnh, y.shape[:-1])
-        return {"t": np.arange(n) * ts, "x": xs, "xdot": xd, "y": y, "wf": wf}
+        return {"t": np.arange(n) * self.k.Ts, "x": xs, "xdot": xd, "y": y, "wf": wf}
 
 
 def plant_signature(constants: PlantConstants | None = None) -> str:

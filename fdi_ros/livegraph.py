@@ -78,8 +78,11 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
     ``during(graph, watcher, run)`` is called on every watch iteration (tests kill nodes
     from it). Returns the run summary and the (closed) watcher with everything it saw.
     """
-    over: dict[str, dict] = {"fdi_plant": {"realtime_factor": realtime_factor},
-                             "fdi_replayer": {"rate": realtime_factor, "start_delay_s": 0.5}}
+    readers = 1 + (record is not None) + bool(watch_features)
+    over: dict[str, dict] = {"fdi_plant": {"realtime_factor": realtime_factor,
+                                           "min_subscribers": readers},
+                             "fdi_replayer": {"rate": realtime_factor,
+                                              "min_subscribers": readers}}
     if scenario is not None:
         over["fdi_plant"]["scenario"] = str(Path(scenario).resolve())
     graph = Graph(config, overrides=over, record=record, replay=replay, echo=echo)

@@ -83,16 +83,25 @@ class Diagnoser:
             return (self.reference_id, *online)
         return online
 
-    def update(self, index: int, t: float,
-               residuals: Mapping[str, ResidualVector]) -> Step:
+    def symptoms_of(self, ref: ResidualVector) -> Any:
+        """Symptoms of the reference model's residuals (stateful: call once per index, in
+        order). The live node calls this as soon as the reference residual arrives, so the
+        symptom is published without waiting for the rest of the bank."""
+        return self.symptom_gen.update(ref) if self.symptom_gen is not None else None
+
+    def update(self, index: int, t: float, residuals: Mapping[str, ResidualVector], *,
+               symptoms: Any = None) -> Step:
+        """One step. ``symptoms``: the result of :meth:`symptoms_of` for this index when the
+        caller computed it already (otherwise it is computed here from ``residuals``)."""
         before = self.models_online
-        symptoms = None
         candidates: tuple[str, ...] = ()
         feed: dict[str, ResidualVector] = dict(residuals)
         if self.symptom_gen is not None:
             ref = residuals.get(self.reference_id)
-            if ref is not None:
-                symptoms = self.symptom_gen.update(ref)
+            if symptoms is None and ref is not None:
+                symptoms = self.symptoms_of(ref)
+            if ref is None and not self.supervisor.isolated:
+                feed = {}  # without the reference model nothing can be said at this step
             active = symptoms is not None and symptoms.valid and any(symptoms.levels)
             if active and self.table is not None:
                 from fdi_ros.core.diesel.symptoms import isolate

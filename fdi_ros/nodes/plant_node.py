@@ -9,7 +9,8 @@ and by the scenario; each fault that takes effect is published on ``/fdi/fault_t
 (transient-local, so late joiners and the recorder see it).
 
 Parameters: ``plant``, ``scenario`` (YAML path), ``seed``, ``realtime_factor`` (1.0),
-``publish_clock`` (true), ``max_blocks_per_tick`` (bounds a catch-up burst).
+``publish_clock`` (true), ``max_blocks_per_tick`` (bounds a catch-up burst),
+``min_subscribers`` (1: wait for the preprocessor before plant time starts).
 """
 
 from __future__ import annotations
@@ -35,8 +36,9 @@ class PlantNode(Node):
             description="plant seconds per wall second; 0 = as fast as possible"))
         self.declare_parameter("publish_clock", True, ro)
         self.declare_parameter("max_blocks_per_tick", 50, ro)
-        self.declare_parameter("start_delay_s", 0.0, ParameterDescriptor(
-            description="wall seconds to wait for subscribers before plant time starts"))
+        self.declare_parameter("min_subscribers", 1, ParameterDescriptor(
+            description="plant time starts once this many readers of /fdi/sensor_block are "
+                        "matched (DDS discovery takes ~0.3-3 s; earlier blocks would be lost)"))
         from fdi_msgs.msg import FaultEvent, SensorBlock
         from rosgraph_msgs.msg import Clock
 
@@ -54,7 +56,7 @@ class PlantNode(Node):
         self.create_subscription(FaultEvent, "/fdi/fault_inject", self._on_inject, LATCHED_QOS)
         self._wall0: float | None = None
         self._t0 = self.runner.t
-        self._start_at = time.monotonic() + float(p("start_delay_s").value)
+        self._min_subs = int(p("min_subscribers").value)
         self._finished = False
         self.create_timer(0.01, self._tick)
         self.get_logger().info(f"plant {self.runner.plant!r} ready, scenario "
@@ -69,7 +71,9 @@ class PlantNode(Node):
                                f"at t = {ev.t:.3f} s")
 
     def _tick(self) -> None:
-        if self._finished or time.monotonic() < self._start_at:
+        if self._finished:
+            return
+        if self._wall0 is None and self._pub.get_subscription_count() < self._min_subs:
             return
         now = time.monotonic()
         if self._wall0 is None:

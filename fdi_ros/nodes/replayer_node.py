@@ -4,8 +4,8 @@ re-encoding). By default it replays the plant side (sensor blocks and fault grou
 preprocessor, residual generators and supervisor run again on recorded measurements.
 
 Parameters: ``bag`` (required), ``rate`` (1.0; 0 = as fast as the graph acknowledges),
-``topics`` (default: /fdi/sensor_block, /fdi/fault_truth), ``start_delay_s`` (wait for
-subscribers), ``publish_clock`` (true).
+``topics`` (default: /fdi/sensor_block, /fdi/fault_truth), ``min_subscribers`` (1: readers of
+/fdi/sensor_block matched before the replay starts), ``start_delay_s``, ``publish_clock``.
 """
 
 from __future__ import annotations
@@ -28,7 +28,8 @@ class ReplayerNode(Node):
         self.declare_parameter("bag", "", ro)
         self.declare_parameter("rate", 1.0, ro)
         self.declare_parameter("topics", ["/fdi/sensor_block", "/fdi/fault_truth"], ro)
-        self.declare_parameter("start_delay_s", 1.0, ro)
+        self.declare_parameter("start_delay_s", 0.0, ro)
+        self.declare_parameter("min_subscribers", 1, ro)
         self.declare_parameter("publish_clock", True, ro)
         from rosgraph_msgs.msg import Clock
 
@@ -51,6 +52,7 @@ class ReplayerNode(Node):
         self._next: tuple | None = None
         self._rate = float(self.get_parameter("rate").value)
         self._start = time.monotonic() + float(self.get_parameter("start_delay_s").value)
+        self._min_subs = int(self.get_parameter("min_subscribers").value)
         self._t0_bag: int | None = None
         self._wall0 = 0.0
         self.count = 0
@@ -62,6 +64,10 @@ class ReplayerNode(Node):
     def _tick(self) -> None:
         if self.done or time.monotonic() < self._start:
             return
+        if self._t0_bag is None and any(p.get_subscription_count() < self._min_subs
+                                        for t, p in self._pubs.items()
+                                        if t == "/fdi/sensor_block"):
+            return  # wait until the readers are matched (nothing published into the void)
         for _ in range(200):
             if self._next is None:
                 self._next = next(self._it, None)

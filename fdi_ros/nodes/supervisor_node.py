@@ -14,7 +14,7 @@ The decisions are all in :class:`fdi_ros.core.diagnoser.Diagnoser` (pure, shared
   ``node_timeout_s``, or whose state is not the one requested, is reported on ``/diagnostics``
   and left out; the rest of the bank goes on.
 
-Parameters: ``graph_config`` (path to config/<plant>.yaml, required), ``lag_segments`` (3),
+Parameters: ``graph_config`` (path to config/<plant>.yaml, required), ``lag_segments`` (40),
 ``diagnostics_period_s`` (1.0).
 """
 
@@ -59,7 +59,7 @@ class SupervisorNode(Node):
         super().__init__("fdi_supervisor")
         ro = ParameterDescriptor(read_only=True)
         self.declare_parameter("graph_config", "", ro)
-        self.declare_parameter("lag_segments", 3, ro)
+        self.declare_parameter("lag_segments", 40, ro)
         self.declare_parameter("diagnostics_period_s", 1.0, ro)
         from diagnostic_msgs.msg import DiagnosticArray
         from fdi_msgs.msg import Diagnosis, Features, Residuals, Symptoms
@@ -87,6 +87,7 @@ class SupervisorNode(Node):
                                        callback_group=self._cb))
         self._apply_wanted()
         self._pending: dict[int, dict[str, Any]] = {}
+        self._symptoms: dict[int, Any] = {}
         self._feature_t: dict[int, float] = {}
         self._latest_feature = -1
         self._next_index: int | None = None
@@ -203,6 +204,11 @@ class SupervisorNode(Node):
         if self._next_index is not None and rv.index < self._next_index:
             return  # too late: that step was decided without it
         self._pending.setdefault(rv.index, {})[rv.model_id] = rv
+        if rv.model_id == self.diag.reference_id and rv.index not in self._symptoms:
+            # Symptoms need only the reference model: publish them at once.
+            s = self.diag.symptoms_of(rv)
+            self._symptoms[rv.index] = s
+            self._publish_symptoms(rv.index, rv.t, s)
         self._process_ready()
 
     def _expected(self) -> list[str]:
@@ -220,17 +226,22 @@ class SupervisorNode(Node):
             self._next_index = k + 1
             for old in [i for i in self._pending if i < self._next_index]:
                 del self._pending[old]
+            for old in [i for i in self._symptoms if i < self._next_index]:
+                del self._symptoms[old]
+
+    def _publish_symptoms(self, k: int, t: float, s: Any) -> None:
+        self.pub_sym.publish(self._fac.symptoms(
+            index=k, t=t, valid=s.valid, status=s.status, names=s.names, levels=s.levels,
+            residuals=s.residuals, threshold_low=s.threshold_low,
+            threshold_high=s.threshold_high, threshold_intense=s.threshold_intense))
 
     def _step(self, k: int, t: float, residuals: dict[str, Any]) -> None:
-        step = self.diag.update(k, t, residuals)
+        done = self._symptoms.pop(k, None)
+        step = self.diag.update(k, t, residuals, symptoms=done)
         d = step.diagnosis
         self.last_diagnosis = d
-        if step.symptoms is not None:
-            s = step.symptoms
-            self.pub_sym.publish(self._fac.symptoms(
-                index=k, t=t, valid=s.valid, status=s.status, names=s.names, levels=s.levels,
-                residuals=s.residuals, threshold_low=s.threshold_low,
-                threshold_high=s.threshold_high, threshold_intense=s.threshold_intense))
+        if done is None and step.symptoms is not None:
+            self._publish_symptoms(k, t, step.symptoms)
         self.pub_diag.publish(self._fac.diagnosis(d))
         if d.state != self._last_state:
             self.get_logger().info(

@@ -417,7 +417,7 @@ class DieselIntakePlant:
 
     @property
     def t(self) -> float:
-        """Plant time of the last slow step [s]."""
+        """Plant time up to which the slow states are integrated [s]."""
         return self._last.get("t", 0.0)
 
     # ------------------------------------------------------------------ slow dynamics
@@ -607,7 +607,7 @@ class DieselIntakePlant:
                     m_d=a["m_d"], m_cyl=a["m_cyl"], m_egr=a["m_egr"], m_t=a["m_t"],
                     eta_v=a["m_cyl"] / (inp["n"] / 120.0 * p.V_D * a["rho2"]), w_tc=w,
                     pr_c=a["pr"], dpr_dm=a["dpr_dm"],
-                    tau_port=0.0, dp_restr=a["dp_restr"], dp_pipe=a["dp_pipe"], dp_af=dp_af,
+                    dp_restr=a["dp_restr"], dp_pipe=a["dp_pipe"], dp_af=dp_af,
                     p2_sp=p2_sp, u_vent=d_vent, u_leak=fz["leak_ic_engine"],
                     u_restr=fz["restriction_ic_engine"], u_swirl=a["closure"],
                     u_egr_stuck=fz["egr_stuck_open"], u_egr_leak=fz["egr_leaky"],

@@ -22,30 +22,47 @@ __all__ = ["CATALOGUE", "EFFECT_TYPES", "ChannelContext", "DiscrepancyConfig",
            "baseline_from_dict", "build_contexts", "discover"]
 
 
+# effects judged on crank-resolved samples when the data and the model have them
+CRANK_VIEW = ("missing_harmonic", "sensor_lag", "dead_time")
+
+
 def discover(data: Measured, model, *, config: DiscrepancyConfig | None = None,
              progress=None) -> tuple[DiscrepancyResult, ExtendedModel]:
     """Analyse ``data`` against the baseline ``model``; return the result and extended model.
 
     Crank-angle resolved data and a model that predicts the pulsation (``model.orders``) are
-    analysed in two views: every effect but ``missing_harmonic`` on 180 deg CA segment means
-    (the pulsation averages out, the mean-value model's errors remain), then
-    ``missing_harmonic`` on the crank-resolved samples with the first view's extensions
-    already applied. Both views share the time base, so one chain of extensions results.
+    analysed in two views, in three stages: sensor lag and dead time on the crank-resolved
+    samples (they look alike on slowly varying means; on the pulsation they differ: a lag damps
+    it, a delay shifts its phase); then the mean-value effects on 180 deg CA segment means
+    (the pulsation averages out, the mean-value model's errors remain); then missing
+    harmonics on the crank-resolved samples. Each stage starts from the model extended by the
+    stages before; the views share the time base, so one chain of extensions results.
     """
     cfg = config or DiscrepancyConfig()
     if data.alpha is None or not getattr(model, "orders", ()):
         res = analyse(build_contexts(data, model), config=cfg, progress=progress)
         return res, ExtendedModel(baseline=model, chains=res.chains, source=data.source)
     mean_model = model.without_pulsation()
-    cfg_a = replace(cfg, effects=tuple(e for e in cfg.effects if e != "missing_harmonic"))
-    res_a = analyse(build_contexts(segment_means(data), mean_model), config=cfg_a,
-                    progress=progress)
-    if "missing_harmonic" not in cfg.effects:
+    stage1 = tuple(e for e in cfg.effects if e in ("sensor_lag", "dead_time"))
+    stage3 = tuple(e for e in cfg.effects if e == "missing_harmonic")
+    cfg_a = replace(cfg, effects=tuple(e for e in cfg.effects if e not in CRANK_VIEW))
+    res_1 = None
+    if stage1:
+        res_1 = analyse(build_contexts(data, model),
+                        config=replace(cfg, effects=stage1, max_findings=1),
+                        progress=progress)
+    ctx_a = build_contexts(segment_means(data), mean_model)
+    if res_1 is not None:
+        for ch, ctx in ctx_a.items():
+            ctx.yhat = apply_chain(ctx, res_1.chains.get(ch, []))
+    res_a = analyse(ctx_a, config=cfg_a, progress=progress)
+    if res_1 is not None:
+        res_a = merge_results(res_1, res_a, b_suffix="", b_channels=False)
+    if not stage3:
         return res_a, ExtendedModel(baseline=model, chains=res_a.chains, source=data.source)
     ctx_b = build_contexts(data, model)
     for ch, ctx in ctx_b.items():
         ctx.yhat = apply_chain(ctx, res_a.chains.get(ch, []))
-    res_b = analyse(ctx_b, config=replace(cfg, effects=("missing_harmonic",)),
-                    progress=progress)
+    res_b = analyse(ctx_b, config=replace(cfg, effects=stage3), progress=progress)
     res = merge_results(res_a, res_b, b_suffix=" (crank-resolved)")
     return res, ExtendedModel(baseline=model, chains=res.chains, source=data.source)

@@ -120,6 +120,9 @@ class ChannelContext:
     leak_q: np.ndarray | None = None
     leak: LeakSpec | None = None
     t_ref: float = 0.0
+    cache: dict = field(default_factory=dict, repr=False)
+    folds: np.ndarray | None = field(default=None, repr=False)  # (n_folds, N) train weights
+    fold_ids: dict = field(default_factory=dict, repr=False)    # id(train mask) -> fold
 
     @property
     def n(self) -> int:

@@ -52,6 +52,13 @@ def _ffill(x: np.ndarray) -> np.ndarray:
     return y
 
 
+def segment_slices(segment: np.ndarray) -> list[slice]:
+    """Contiguous runs of equal segment id (segments are contiguous in time)."""
+    cuts = np.flatnonzero(np.diff(segment)) + 1
+    edges = np.concatenate([[0], cuts, [segment.size]])
+    return [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
 def _lowpass_varying(x: np.ndarray, t: np.ndarray, tau_s: float, y0: float) -> np.ndarray:
     """Exact ZOH first-order lag for non-uniform sample times.
 
@@ -83,8 +90,7 @@ def lowpass(x: np.ndarray, t: np.ndarray, segment: np.ndarray, tau_s: float) -> 
     """
     out = np.empty_like(x, dtype=float)
     tau_s = max(tau_s, 1e-12)
-    for s in np.unique(segment):
-        idx = np.flatnonzero(segment == s)
+    for idx in segment_slices(segment):
         xs = _ffill(x[idx])
         ts = t[idx]
         steps = np.diff(ts)
@@ -102,8 +108,7 @@ def lowpass(x: np.ndarray, t: np.ndarray, segment: np.ndarray, tau_s: float) -> 
 def delay(x: np.ndarray, t: np.ndarray, segment: np.ndarray, delay_s: float) -> np.ndarray:
     """``x(t - d)`` per segment by linear interpolation (held at the segment's first value)."""
     out = np.empty_like(x, dtype=float)
-    for s in np.unique(segment):
-        idx = np.flatnonzero(segment == s)
+    for idx in segment_slices(segment):
         xs = _ffill(x[idx])
         out[idx] = np.interp(t[idx] - delay_s, t[idx], xs)
     out[~np.isfinite(x)] = np.nan
@@ -168,7 +173,9 @@ class Effect:
     def n_params(self) -> int:
         return 1
 
-    def fit(self, ctx: ChannelContext, base: np.ndarray, train: np.ndarray) -> dict:
+    def fit(self, ctx: ChannelContext, base: np.ndarray, train: np.ndarray, *,
+            refine: bool = False) -> dict:
+        """Parameters fitted on the ``train`` samples; ``refine``: final (polished) fit."""
         raise NotImplementedError
 
     def apply(self, ctx: ChannelContext, base: np.ndarray, params: dict) -> np.ndarray:
@@ -193,7 +200,7 @@ class Offset(Effect):
     def n_params(self) -> int:
         return 2 if self.onset else 1
 
-    def fit(self, ctx, base, train):
+    def fit(self, ctx, base, train, *, refine=False):
         m = _train_mask(ctx, base, train)
         b, t_on = _fit_scalar(ctx.y - base, np.ones_like(base), ctx.t, m, onset=self.onset,
                               nonneg=False)
@@ -216,7 +223,7 @@ class GainError(Effect):
     def n_params(self) -> int:
         return 2 if self.onset else 1
 
-    def fit(self, ctx, base, train):
+    def fit(self, ctx, base, train, *, refine=False):
         m = _train_mask(ctx, base, train)
         b, t_on = _fit_scalar(ctx.y - base, base, ctx.t, m, onset=self.onset, nonneg=False)
         return {"gain": 1.0 + b, "onset_s": t_on}
@@ -229,7 +236,7 @@ class GainError(Effect):
 class Drift(Effect):
     id = "drift"
 
-    def fit(self, ctx, base, train):
+    def fit(self, ctx, base, train, *, refine=False):
         m = _train_mask(ctx, base, train)
         rate, _ = _fit_scalar(ctx.y - base, ctx.t - ctx.t_ref, ctx.t, m, onset=False,
                               nonneg=False)
@@ -239,24 +246,56 @@ class Drift(Effect):
         return base + params["rate_per_s"] * (ctx.t - params["t_ref_s"])
 
 
-def _fit_1d(ctx: ChannelContext, base: np.ndarray, m: np.ndarray, transform, lo: float,
-            hi: float, *, log: bool, n_grid: int = 24) -> tuple[float, float]:
-    """Minimise the training SSE of ``transform(value)`` over [lo, hi]: grid, then Brent."""
+def _fit_1d(ctx: ChannelContext, base: np.ndarray, train: np.ndarray, transform, lo: float,
+            hi: float, *, log: bool, key: str, refine: bool, n_grid: int = 40
+            ) -> float:
+    """Minimise the training SSE of ``transform(value)`` over [lo, hi].
+
+    The grid is evaluated once per base prediction for all folds together: the engine puts
+    the folds' training masks on the context (``ctx.folds``), and the squared errors of each
+    grid value are summed per fold with one matrix-vector product. The minimum is located by a
+    parabola through the best grid point and its neighbours (in log space for ``log``);
+    ``refine`` polishes it with Brent's method (the final fit on all samples).
+    """
+    grid = np.geomspace(lo, hi, n_grid) if log else np.linspace(lo, hi, n_grid)
+    valid = np.isfinite(ctx.y) & np.isfinite(base)
+    folds = ctx.folds
+    k_fold = ctx.fold_ids.get(id(train)) if folds is not None else None
+
+    def sq_err(v: float) -> np.ndarray:
+        e = ctx.y - transform(v)
+        ok = valid & np.isfinite(e)
+        return np.where(ok, e, 0.0) ** 2
+
+    if k_fold is not None:
+        cache = ctx.cache.get(key)
+        if cache is None or cache["base"] is not base:  # one base per effect
+            table = np.array([folds @ sq_err(float(v)) for v in grid])  # (n_grid, n_folds)
+            cache = ctx.cache[key] = {"base": base, "table": table}
+        costs = cache["table"][:, k_fold]
+    else:
+        m = train & valid
+        costs = np.array([float(sq_err(float(v))[m].sum()) for v in grid])
 
     def sse(v: float) -> float:
-        e = ctx.y[m] - transform(v)[m]
-        return float(np.dot(e, e)) if np.isfinite(e).all() else np.inf
+        return float(sq_err(v)[train & valid].sum())
 
-    grid = np.geomspace(lo, hi, n_grid) if log else np.linspace(lo, hi, n_grid)
-    costs = np.array([sse(v) for v in grid])
     k = int(np.argmin(costs))
-    a, b = grid[max(k - 1, 0)], grid[min(k + 1, n_grid - 1)]
-    if b > a:
-        res = minimize_scalar(sse, bounds=(a, b), method="bounded",
-                              options={"xatol": (b - a) * 1e-3})
-        if res.fun < costs[k]:
-            return float(res.x), float(res.fun)
-    return float(grid[k]), float(costs[k])
+    best = float(grid[k])
+    if 0 < k < n_grid - 1:
+        x = np.log(grid[k - 1:k + 2]) if log else grid[k - 1:k + 2]
+        c2, c1, _ = np.polyfit(x - x[1], costs[k - 1:k + 2], 2)
+        if c2 > 0:
+            xv = float(np.clip(-c1 / (2 * c2), x[0] - x[1], x[2] - x[1])) + x[1]
+            best = float(np.exp(xv)) if log else xv
+    if refine:
+        a, b = grid[max(k - 1, 0)], grid[min(k + 1, n_grid - 1)]
+        if b > a:
+            res = minimize_scalar(lambda v: sse(float(v)), bounds=(a, b), method="bounded",
+                                  options={"xatol": (b - a) * 1e-4})
+            if res.fun <= sse(best):
+                best = float(res.x)
+    return best
 
 
 @dataclass(frozen=True)
@@ -268,11 +307,10 @@ class SensorLag(Effect):
         dur = ctx.t[-1] - ctx.t[0]
         return 0.2 * ctx.dt, max(min(self.max_tau_s, dur / 10.0), ctx.dt)
 
-    def fit(self, ctx, base, train):
-        m = _train_mask(ctx, base, train)
+    def fit(self, ctx, base, train, *, refine=False):
         lo, hi = self._range(ctx)
-        tau, _ = _fit_1d(ctx, base, m, lambda v: lowpass(base, ctx.t, ctx.segment, v), lo, hi,
-                         log=True)
+        tau = _fit_1d(ctx, base, train, lambda v: lowpass(base, ctx.t, ctx.segment, v), lo, hi,
+                      log=True, key=self.label, refine=refine)
         return {"tau_s": tau}
 
     def apply(self, ctx, base, params):
@@ -282,14 +320,16 @@ class SensorLag(Effect):
 @dataclass(frozen=True)
 class DeadTime(Effect):
     id = "dead_time"
-    max_delay_s: float = 2.0
+    max_delay_s: float = 0.5
 
-    def fit(self, ctx, base, train):
-        m = _train_mask(ctx, base, train)
+    def fit(self, ctx, base, train, *, refine=False):
         dur = ctx.t[-1] - ctx.t[0]
         hi = max(min(self.max_delay_s, dur / 20.0), 2 * ctx.dt)
-        d, _ = _fit_1d(ctx, base, m, lambda v: delay(base, ctx.t, ctx.segment, v), 0.0, hi,
-                       log=False, n_grid=int(min(60, max(12, hi / ctx.dt + 1))))
+        d = _fit_1d(ctx, base, train, lambda v: delay(base, ctx.t, ctx.segment, v), 0.0, hi,
+                    log=False, key=self.label, refine=refine,
+                    # one grid point per sample step: with a pulsating signal the error is
+                    # multimodal in the delay (period of the pulsation), a coarse grid misses
+                    n_grid=int(min(600, max(12, hi / ctx.dt + 1))))
         return {"delay_s": d}
 
     def apply(self, ctx, base, params):
@@ -322,7 +362,7 @@ class InputDependence(Effect):
         cols = [z] + ([z ** 2 - sq_mean] if self.degree >= 2 else [])
         return np.stack(cols, axis=1)
 
-    def fit(self, ctx, base, train):
+    def fit(self, ctx, base, train, *, refine=False):
         x = ctx.columns[self.column]
         m = _train_mask(ctx, base, train, x)
         if m.sum() < 10 * self.degree:
@@ -356,7 +396,7 @@ class Leak(Effect):
     def n_params(self) -> int:
         return 2 if self.onset else 1
 
-    def fit(self, ctx, base, train):
+    def fit(self, ctx, base, train, *, refine=False):
         q = ctx.leak_q
         m = _train_mask(ctx, base, train, q)
         cda, t_on = _fit_scalar(ctx.y - base, -q, ctx.t, m, onset=self.onset, nonneg=True)
@@ -384,7 +424,7 @@ class MissingHarmonic(Effect):
         th = 2.0 * np.pi * order * alpha / 180.0
         return np.stack([np.cos(th), np.sin(th)], axis=1)
 
-    def fit(self, ctx, base, train):
+    def fit(self, ctx, base, train, *, refine=False):
         m = _train_mask(ctx, base, train, ctx.alpha)
         r = ctx.y[m] - base[m]
         best = (np.inf, self.orders[0], np.zeros(2))
@@ -431,7 +471,7 @@ class LocalRegion(Effect):
     def n_params(self) -> int:
         return 5
 
-    def fit(self, ctx, base, train):
+    def fit(self, ctx, base, train, *, refine=False):
         names = list(ctx.region)[:2]
         cols = [ctx.region[n] for n in names]
         m = _train_mask(ctx, base, train, *cols)
@@ -447,11 +487,13 @@ class LocalRegion(Effect):
         cnt = np.bincount(flat, minlength=int(np.prod(shape))).reshape(shape)
         s = np.bincount(flat, weights=r, minlength=int(np.prod(shape))).reshape(shape)
         mean = np.where(cnt > 0, s / np.maximum(cnt, 1), 0.0)
-        # serial correlation inflates the variance of a bin mean by about (1+rho)/(1-rho)
-        rc = r - r.mean()
+        # noise level and serial correlation from the within-bin residual (the effect itself
+        # must not count as noise); correlation inflates a bin mean's variance by about
+        # (1 + rho) / (1 - rho)
+        rc = r - mean.ravel()[flat]
         rho = float(np.clip(np.dot(rc[1:], rc[:-1]) / max(np.dot(rc, rc), 1e-300), 0.0, 0.995))
         infl = (1 + rho) / (1 - rho)
-        se = np.std(r) * np.sqrt(infl / np.maximum(cnt, 1))
+        se = np.std(rc) * np.sqrt(infl / np.maximum(cnt, 1))
         z = np.where(cnt >= 5, mean / np.maximum(se, 1e-300), 0.0)
         k0 = np.unravel_index(int(np.argmax(np.abs(z))), shape)
         if abs(z[k0]) < self.z_min:
@@ -477,7 +519,33 @@ class LocalRegion(Effect):
             lo = -np.inf if lo_i == 0 else float(edges[ax][lo_i])
             hi = np.inf if hi_i == shape[ax] - 1 else float(edges[ax][hi_i + 1])
             box[name] = [lo, hi]
-        inside = _box_mask({n: c[m] for n, c in zip(names, cols)}, box)
+        reg = {n: c[m] for n, c in zip(names, cols)}
+
+        def gain(b: dict) -> float:  # SSE reduction of the best offset inside box b
+            ins = _box_mask(reg, b)
+            k = int(ins.sum())
+            return float(r[ins].sum()) ** 2 / k if k >= 5 else 0.0
+
+        # the bins only place the edges to a bin width: move each edge over the two bins
+        # around it (coordinate search on the training SSE)
+        for ax, name in enumerate(names):
+            e = edges[ax]
+            for side in (0, 1):
+                cur = box[name][side]
+                if not np.isfinite(cur):
+                    continue
+                j = int(np.clip(np.searchsorted(e, cur), 1, len(e) - 2))
+                cands = np.linspace(e[j - 1], e[j + 1], 25)
+                best_v, best_g = cur, gain(box)
+                for v in cands:
+                    trial = {**box, name: list(box[name])}
+                    trial[name][side] = float(v)
+                    if trial[name][0] < trial[name][1]:
+                        g = gain(trial)
+                        if g > best_g:
+                            best_v, best_g = float(v), g
+                box[name][side] = best_v
+        inside = _box_mask(reg, box)
         off = float(r[inside].mean()) if inside.any() else 0.0
         return {"region": box, "offset": off}
 

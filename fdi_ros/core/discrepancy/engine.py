@@ -185,13 +185,13 @@ def make_blocks(t: np.ndarray, ok: np.ndarray, n_blocks: int) -> np.ndarray:
     return np.where(ok, blk, -1)
 
 
-def fit_chain(ctx: ChannelContext, chain: list[Effect], train: np.ndarray
-              ) -> tuple[np.ndarray, list[dict]]:
+def fit_chain(ctx: ChannelContext, chain: list[Effect], train: np.ndarray, *,
+              refine: bool = False) -> tuple[np.ndarray, list[dict]]:
     """Fit the effects one after the other on ``train``; the full-length prediction."""
     pred = ctx.yhat
     params = []
     for eff in chain:
-        p = eff.fit(ctx, pred, train)
+        p = eff.fit(ctx, pred, train, refine=refine)
         pred = eff.apply(ctx, pred, p)
         params.append(p)
     return pred, params
@@ -343,6 +343,9 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
                   else (np.nan, np.nan) for b in range(nb)]
         trains = [ok & ~((ctx.t >= lo - guard) & (ctx.t <= hi + guard)) for lo, hi in bounds]
         tests = [blk == b for b in range(nb)]
+        # the folds, for effects that evaluate a parameter grid for all folds at once
+        ctx.folds = np.array(trains, dtype=float)
+        ctx.fold_ids = {id(tr): k for k, tr in enumerate(trains)}
         resid0 = ctx.y - ctx.yhat
         info["rmse_baseline"] = float(np.sqrt(np.mean(resid0[ok] ** 2)))
         info["bias_baseline"] = float(np.mean(resid0[ok]))
@@ -350,6 +353,7 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
         chain: list[Effect] = []
         for step in range(cfg.max_findings):
             nit += 1
+            ctx.cache.clear()
             bases = []
             before = np.full(ctx.n, np.nan)
             for tr, te in zip(trains, tests):
@@ -409,7 +413,10 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
                                     p_value=choice.p_value, p_adjusted=choice.p_adjusted,
                                     p_dm=choice.p_dm, significant=True, n_params=choice.n_params, step=step + 1))
         # the extension as saved: refitted on every valid sample
-        _, params = fit_chain(ctx, chain, ok)
+        ctx.cache.clear()
+        _, params = fit_chain(ctx, chain, ok, refine=True)
+        ctx.cache.clear()
+        ctx.folds, ctx.fold_ids = None, {}
         chains[ch] = list(zip(chain, params))
         for f_i, f in enumerate(findings):
             if f.channel == ch and not f.params:
@@ -435,8 +442,8 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
                              seconds=time.perf_counter() - t0, config=cfg, oof=oof)
 
 
-def merge_results(a: DiscrepancyResult, b: DiscrepancyResult, *, b_suffix: str
-                  ) -> DiscrepancyResult:
+def merge_results(a: DiscrepancyResult, b: DiscrepancyResult, *, b_suffix: str,
+                  b_channels: bool = True) -> DiscrepancyResult:
     """One result from two analyses (e.g. mean-value and crank-resolved views of a channel).
 
     Findings are re-ranked by held-out gain; chains are concatenated per channel (``b``'s
@@ -446,8 +453,11 @@ def merge_results(a: DiscrepancyResult, b: DiscrepancyResult, *, b_suffix: str
     findings = [Finding(**{**f.__dict__, "rank": i + 1}) for i, f in enumerate(findings)]
     chains = {ch: list(a.chains.get(ch, [])) + list(b.chains.get(ch, []))
               for ch in set(a.chains) | set(b.chains)}
-    channels = dict(a.channels)
-    channels.update({f"{ch}{b_suffix}": v for ch, v in b.channels.items()})
+    channels = dict(a.channels if b_channels else b.channels)
+    if b_channels:
+        channels.update({f"{ch}{b_suffix}": v for ch, v in b.channels.items()})
+    else:
+        channels.update({f"{ch} (crank-resolved)": v for ch, v in a.channels.items()})
     cands = sorted(a.candidates + b.candidates, key=lambda c: -c.gain_pct)
     if findings:
         top = findings[0]

@@ -144,10 +144,13 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
         else:
             log(f"timed out after {timeout_s} s")
         if run.switches:  # confirm the bank switch with the standard get_state service
-            w.spin_until(lambda: bank_ready(w, bank), 30.0, "the switched bank")
+            healthy = [m for m in bank if graph.alive().get(graph.cfg.entry(m).node_name)]
+            w.spin_until(lambda: bank_ready(w, healthy), 30.0, "the switched bank")
             for mid in bank:
                 e = graph.cfg.entry(mid)
-                run.lifecycle_after[mid] = w.lifecycle_state(e.node_name)
+                gone = not graph.alive().get(e.node_name, False)
+                run.lifecycle_after[mid] = "process gone" if gone else \
+                    w.lifecycle_state(e.node_name)
     finally:
         run.wall_s = time.monotonic() - wall0
         graph.stop()

@@ -160,6 +160,25 @@ def test_nan_and_gap_make_only_their_segments_invalid():
     assert all(np.all(np.isnan(x.values)) for x in bad)
 
 
+def test_one_missing_sample_is_a_gap_and_smooth_nonuniform_sampling_is_not():
+    a = np.arange(0.0, 721.0)
+    x = _sig(a, 165.0, 20.0, 10.0)
+    keep = a != 400.0                     # one sample lost in segment 2 (360..540)
+    f = segment_features(_block(a[keep], a[keep] / 12000, x[keep], x[keep]))
+    assert [(g.index, g.valid, g.status) for g in f] == [(0, True, "ok"), (1, True, "ok"),
+                                                         (2, False, "gap"), (3, True, "ok")]
+    # the same loss across a block boundary of the streaming segmenter
+    seg = CrankSegmenter()
+    out = seg.push(_block(a[:400], a[:400] / 12000, x[:400], x[:400]))
+    out += seg.push(_block(a[401:], a[401:] / 12000, x[401:], x[401:]))
+    assert [g.status for g in out] == ["ok", "ok", "gap", "ok"]
+    # equidistant in time over 1000 -> 6000 rpm: steps grow 6-fold, smoothly: no gap
+    tt = np.linspace(0.0, 0.2, 20001)
+    aa = 6.0 * (1000.0 * tt + 12500.0 * tt ** 2)
+    xx = _sig(aa, 165.0, 20.0, 10.0)
+    assert all(g.valid for g in segment_features(_block(aa, tt, xx, xx)))
+
+
 def test_unsorted_duplicate_and_overlapping_blocks_raise():
     a = np.arange(0.0, 400.0)
     maf = np.full(a.size, 1.0)

@@ -40,8 +40,9 @@ means), ``maf_amp`` kg/h, ``maf_phase`` deg CA, ``p2_amp`` Pa, ``p2_phase`` deg 
 Validity
 --------
 A segment is invalid (``valid=False``, all values NaN, ``status`` says why) when a sample in
-it is NaN/inf ("nan"), when a crank-angle step touching it is larger than ``max_gap_deg``
-("gap"), or when the samples do not cover it ("incomplete"). Crank angles that are not
+it is NaN/inf ("nan"), when a crank-angle step touching it is a gap ("gap": larger than
+``max_gap_deg``, or by default more than 1.5 x the smaller neighbouring step, so one missing
+sample is enough), or when the samples do not cover it ("incomplete"). Crank angles that are not
 strictly increasing (unsorted, duplicates) and decreasing times raise ``ValueError``.
 """
 
@@ -107,10 +108,10 @@ def _basis(alpha: np.ndarray, D: float, K: int) -> np.ndarray:
 def _check_order(alpha: np.ndarray, t: np.ndarray | None) -> np.ndarray:
     if alpha.ndim != 1:
         raise ValueError("alpha must be one-dimensional")
-    if not np.all(np.isfinite(alpha)):
-        raise ValueError("crank angles must be finite (a NaN crank angle cannot be placed)")
     d = np.diff(alpha)
-    if d.size and not np.all(d > 0):
+    if (d.size == 0 and not np.all(np.isfinite(alpha))) or (d.size and not np.all(d > 0)):
+        if not np.all(np.isfinite(alpha)):
+            raise ValueError("crank angles must be finite (a NaN crank angle cannot be placed)")
         bad = int(np.argmax(~(d > 0)))
         kind = "duplicate" if d[bad] == 0 else "decreasing"
         raise ValueError(f"crank angles must be strictly increasing: {kind} at sample {bad + 1} "
@@ -136,7 +137,8 @@ def crank_harmonics(alpha: np.ndarray, t: np.ndarray | None, values: np.ndarray,
     alpha_prev : crank angle of the sample just before ``alpha[0]`` (streaming context), or
         None at the start of a record (the first cell then starts at ``alpha[0]``).
     first_segment : first segment to report (default: the first boundary >= alpha[0]).
-    max_gap_deg : largest allowed crank-angle step (default: 3 x the median step).
+    max_gap_deg : largest allowed crank-angle step (default: a step more than 1.5 x the
+        smaller of its neighbours is a gap, see :func:`_gap_steps`).
 
     Returns
     -------
@@ -165,9 +167,7 @@ def crank_harmonics(alpha: np.ndarray, t: np.ndarray | None, values: np.ndarray,
     if S <= 0:
         return empty, j0
     h = float(d[0])
-    uniform = bool(np.all(np.abs(d - h) <= 1e-9 * max(h, 1.0)))
-    med = h if uniform else float(np.median(d))
-    gap = 3.0 * med if max_gap_deg is None else float(max_gap_deg)
+    uniform = bool(d.max() - d.min() <= 1e-9 * max(h, 1.0))
     uniform = (uniform and abs(D / h - round(D / h)) < 1e-9 and
                (alpha_prev is None or abs(alpha[0] - alpha_prev - h) <= 1e-9 * max(h, 1.0)))
     seg_start = (j0 + np.arange(S)) * D
@@ -188,17 +188,14 @@ def crank_harmonics(alpha: np.ndarray, t: np.ndarray | None, values: np.ndarray,
     else:
         t_start = np.interp(seg_start, alpha, tt)
         t_end = np.interp(seg_start + D, alpha, tt)
-    # crank-angle gaps
-    if d.size and np.any(d > gap):
-        big = np.nonzero(d > gap)[0]
-        for i in big:
-            a_lo, a_hi = alpha[i], alpha[i + 1]
+    # crank-angle gaps (the step from the context sample counts too)
+    a_all = alpha if alpha_prev is None else np.concatenate([[alpha_prev], alpha])
+    d_all = d if alpha_prev is None else np.concatenate([[alpha[0] - alpha_prev], d])
+    if not uniform or max_gap_deg is not None:
+        for i in np.nonzero(_gap_steps(d_all, max_gap_deg))[0]:
+            a_lo, a_hi = a_all[i], a_all[i + 1]
             js = np.arange(int(math.floor(a_lo / D)), int(math.floor(a_hi / D)) + 1) - j0
-            js = js[(js >= 0) & (js < S)]
-            status[js] = "gap"
-    if alpha_prev is not None and alpha[0] - alpha_prev > gap:
-        js = np.arange(int(math.floor(alpha_prev / D)), int(math.floor(alpha[0] / D)) + 1) - j0
-        status[js[(js >= 0) & (js < S)]] = "gap"
+            status[js[(js >= 0) & (js < S)]] = "gap"
     bad_num = ~np.all(np.isfinite(coef), axis=(0, 2))
     status[(status == "ok") & bad_num] = "nan"
     valid = status == "ok"
@@ -209,6 +206,23 @@ def crank_harmonics(alpha: np.ndarray, t: np.ndarray | None, values: np.ndarray,
 
 
 _UNIFORM_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _gap_steps(d: np.ndarray, max_gap_deg: float | None) -> np.ndarray:
+    """Mask of crank-angle steps that are gaps.
+
+    With ``max_gap_deg`` the rule is absolute. Otherwise a step is a gap when it is more than
+    1.5 times the smaller of its two neighbouring steps: one missing sample of a uniform grid
+    doubles a step, while sampling that is only smoothly non-uniform (equidistant in time
+    during a speed ramp) changes from step to step by far less.
+    """
+    if max_gap_deg is not None:
+        return d > float(max_gap_deg)
+    if d.size < 2:
+        return np.zeros(d.size, bool)
+    left = np.concatenate([[np.inf], d[:-1]])
+    right = np.concatenate([d[1:], [np.inf]])
+    return d > 1.5 * np.minimum(left, right)
 
 
 def _uniform(alpha, values, j0, S, D, K, h, i_first):
@@ -233,8 +247,10 @@ def _uniform(alpha, values, j0, S, D, K, h, i_first):
     else:
         wphi, Ginv = cached
     C = values.shape[0]
-    X = values[:, i_first:i_first + S * m].reshape(C * S, m)
-    g = (X @ wphi[:m]).reshape(C, S, -1)       # one BLAS product for all segments
+    g = np.empty((C, S, wphi.shape[1]))
+    for c in range(C):
+        # a contiguous row reshapes without a copy: one BLAS product per channel
+        g[c] = values[c, i_first:i_first + S * m].reshape(S, m) @ wphi[:m]
     tail = values[:, i_first + m: i_first + (S + 1) * m: m]
     if tail.shape[1] < S:   # last segment ends exactly on the last sample
         tail = np.concatenate([tail, values[:, -1:]], axis=1)[:, :S]
@@ -371,7 +387,8 @@ class CrankSegmenter:
     segment_deg : segment length [deg CA] (180 for a 4-cylinder four-stroke engine).
     V_D : displacement [m^3]; R : gas constant [J/(kg K)] for rho2 and eta_v.
     n_harmonics : harmonics fitted jointly (1..K) to keep higher orders out of the first.
-    max_gap_deg : largest crank-angle step that is not a gap (default 3 x median step).
+    max_gap_deg : largest crank-angle step that is not a gap (default: relative rule, a step
+        more than 1.5 x the smaller neighbouring step is a gap).
 
     ``push(block)`` returns the feature vectors of the segments completed by the block.
     A block whose crank angles are not strictly increasing, or that starts at or before the

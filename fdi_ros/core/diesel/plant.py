@@ -29,7 +29,8 @@ Main equations (SI units; ``n`` in rpm, flows in kg/s inside the model)
 Engine gas flow (speed-density):   ``m_cyl = eta_V(n, rho2) * n/120 * V_D * rho2``,
 with ``rho2 = p2 / (R T2)`` and the true volumetric efficiency (see :func:`eta_true`)
 ``eta_V = c_eta * T2 / (T2 + dT_heat(n, rho2)) * (1 - c_fr (n/n_ref)^2) * (1 + a_ram g(n))``
-times the swirl-port pressure-loss factor ``(1 - beta_rec * dp_port / p2)``.
+times the swirl-port factor ``(1 - beta_rec dp_port/p2) / (1 - beta_rec dp_port,open/p2)``
+(1 with open flaps), ``dp_port = (port_peak m_cyl / (Cd A_port))^2 / (2 rho2)``.
 
 Boost volume (intercooler + pipe + manifold, isothermal filling):
 ``dp2/dt = R T2 / V_b * (m_c - m_leak - m_cyl + m_egr)``  (linearly implicit Euler).
@@ -50,6 +51,16 @@ Air filter and crank-case vent share the pressure drop ``p_amb - p1``:
 Faults (ids fixed for the whole project; sizes in the units of :data:`FAULT_UNITS`) act only on
 these physical elements: vent opening area, leak orifice, restriction loss (and its acoustic
 resistance), filling-port area, EGR valve area.
+
+Phase convention of the harmonics: ``x(alpha) = mean + A cos(2 pi alpha/180 + phi)``, alpha
+from cylinder 1 TDC, ``phi`` in deg CA wrapped to [-90, 90) (as in ``fdi_ros.core.crank``).
+The MAF phase falls by about 215 deg CA from 800 to 4000 rpm (duct delays, the two
+resonances, sensor lag), so it wraps once (near 2350 rpm at mid load); the p2 phase spans
+about 60 deg CA.
+
+Simplifications: the exhaust manifold is a constant pressure for the acoustics (its blowdown
+pulsation does not reach the intake through the EGR valve); the sensors are linear; T2 has
+no crank-angle pulsation; the engine speed is an input (no torsional oscillation).
 """
 
 from __future__ import annotations

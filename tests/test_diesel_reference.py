@@ -165,7 +165,8 @@ def test_fault_hypotheses_separate_faults_of_equal_signature(identified, tmp_pat
         return _fvs(d)
 
     hyp = {k: identify_fault_hypothesis(res.models, cfg, faulty(k, 20 + i), fault=k, size=1.0,
-                                        t_from=0.0, residual_names=("r_eta",), window=150)
+                                        t_from=0.0, residual_names=("r_eta",),
+                                        inputs=("n", "rho2"), window=150)
            for i, k in enumerate(shapes)}
     hyp["flat"].save(tmp_path / "flat")
     res.models.save(tmp_path)
@@ -181,9 +182,18 @@ def test_fault_hypotheses_separate_faults_of_equal_signature(identified, tmp_pat
         stream = faulty(truth, 40, period=200.0)[:1500]
         norms = {k: [] for k in shapes}
         for k, h in hyp.items():
-            h.reset()
-            norms[k] = np.array([h.residuals(fv).norm for fv in stream])[300:]
+            norms[k] = np.array([rv.norm for rv in h.stream(stream)])[300:]
         other = next(k for k in shapes if k != truth)
         assert np.nanmedian(norms[truth]) < 0.75 * np.nanmedian(norms[other]), truth
     assert hyp["speedy"].size_estimate > 0.5
+    # The vectorised offline stream equals the segment-by-segment model.
+    stream = faulty("speedy", 41, period=200.0)[:400]
+    h = hyp["speedy"]
+    fast = h.stream(stream)
+    h.reset()
+    slow = [h.residuals(fv) for fv in stream]
+    for a, b in zip(fast, slow):
+        assert a.valid == b.valid
+        np.testing.assert_allclose(a.values, b.values)
+        np.testing.assert_allclose(a.norm, b.norm)
     del loaded

@@ -102,3 +102,11 @@ def test_registry_rejects_bad_specs(tmp_path):
         load_residual_model(tmp_path / "missing", model_id="x")
     with pytest.raises(FileNotFoundError):
         load_residual_model({"type": "diesel_reference", "path": str(tmp_path)}, model_id="n")
+
+
+def test_isolation_with_one_mismatch_allowed():
+    # Our plant's open vent also lowers the MAF amplitude: one symptom off the paper's row.
+    assert isolate((2, -1, 0, 0, 0), PAPER_TABLE) == []
+    assert sorted(isolate((2, -1, 0, 0, 0), PAPER_TABLE, max_mismatch=1)) == [
+        "crankcase_vent_open", "egr_leaky", "egr_stuck_open"]   # each differs in one symptom
+    assert isolate((-1, 0, 0, 0, 0), PAPER_TABLE, max_mismatch=1) == ["leak_ic_engine"]

@@ -80,7 +80,8 @@ def features_from_blocks(blocks) -> list:
     return out
 
 
-def simulate_features(scenario, *, seed: int, progress: bool = False, faults=None):
+def simulate_features(scenario, *, seed: int, progress: bool = False, faults=None,
+                      duration_s: float | None = None):
     """Simulate a diesel scenario (path or Scenario; ``faults`` replaces its fault events) and
     return (features, fault truth events)."""
     import dataclasses
@@ -90,6 +91,8 @@ def simulate_features(scenario, *, seed: int, progress: bool = False, faults=Non
     sc = load_scenario(scenario)
     if faults is not None:
         sc = dataclasses.replace(sc, faults=tuple(faults))
+    if duration_s is not None:
+        sc = dataclasses.replace(sc, duration_s=min(float(duration_s), sc.duration_s))
     sim = simulate(sc, seed=seed, keep_blocks=False, progress=progress)
     if sim.features is None:
         raise ValueError("the simulation produced no features")

@@ -203,7 +203,8 @@ def run(args: argparse.Namespace) -> int:
         row = {"fault": fault, "size": size, "signature": signature_string(sig),
                "paper_signature": signature_string(PAPER_TABLE[fault]),
                "matches_paper": sig == PAPER_TABLE[fault], **ev,
-               "isolated": {name: isolate(sig, tab) for name, tab in tables.items()}}
+               "isolated": {name: isolate(sig, tab, max_mismatch=1)
+                            for name, tab in tables.items()}}
         row["_sig"] = sig
         runs.append(row)
         if args.figures:
@@ -251,51 +252,70 @@ def _write_plant_table(path, runs) -> None:
     doc["symptoms"] = list(SYMPTOMS)
     tables = doc.setdefault("tables", {})
     plant = {}
-    for r in runs:   # the largest size of each fault gives its row
-        plant[r["fault"]] = signature_string(r["_sig"])
+    for r in runs:   # the smallest size of each fault gives its row (the one to catch first)
+        plant.setdefault(r["fault"], signature_string(r["_sig"]))
     tables["plant"] = plant
-    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    head = "".join(line + "\n" for line in path.read_text().splitlines()
+                   if line.startswith("#")) if path.exists() else ""
+    path.write_text(head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=False))
 
 
-def compare_hypotheses(mset, scfg, models_dir, *, seed: int, progress: bool) -> dict:
-    """Identify the hypothesis models of the two faults of equal signature on one sweep, then
-    run each with either fault present on another sweep (and at the steady paper point)."""
+def compare_hypotheses(mset, scfg, models_dir, *, seed: int, progress: bool,
+                       window: int = 400, drive_s: float | None = None) -> dict:
+    """Identify the hypothesis models of the two faults of equal (paper) signature on the
+    transient drive with the fault present (one seed), then run both with either fault present,
+    at 0.7 times that size, on the drive with another seed and at the steady paper point."""
     import numpy as np
 
+    from fdi_ros.commands.identify import DEFAULT_DRIVE, simulate_features
     from fdi_ros.core.diesel.symptoms import identify_fault_hypothesis
 
     sizes = {"crankcase_vent_open": 10.0, "egr_leaky": 4.0}
-    t_on, dur = 5.0, 125.0
     hyp = {}
     for i, f in enumerate(AMBIGUOUS):
-        feats = plant_features(duration_s=dur, seed=seed + 500 + i,
-                               profile=sweep_profile(60.0),
-                               faults=[fault_event(f, sizes[f], t_on)])
+        feats, _ = simulate_features(DEFAULT_DRIVE, seed=seed + 500 + i,
+                                     faults=[fault_event(f, sizes[f], 5.0)])
         hyp[f] = identify_fault_hypothesis(mset, scfg, feats, fault=f, size=sizes[f],
-                                           t_from=t_on + 1.0, window=300)
+                                           t_from=6.0, window=window)
         hyp[f].save(Path(models_dir) / "hypotheses" / f)
-    out: dict = {"window_segments": 300, "runs": {}}
+    out: dict = {"window_segments": window, "sizes_identified": sizes, "runs": {}}
     correct = 0
     for j, truth in enumerate(AMBIGUOUS):
-        for mode in ("sweep", "steady"):
-            prof = sweep_profile(23.0, phase=0.3) if mode == "sweep" else None
-            feats = plant_features(duration_s=45.0, seed=seed + 700 + j, profile=prof,
-                                   faults=[fault_event(truth, 0.8 * sizes[truth], 2.0)])
-            norms = {}
+        size = 0.7 * sizes[truth]   # another size than the one identified
+        for mode in ("drive", "steady"):
+            if mode == "drive":
+                feats, _ = simulate_features(DEFAULT_DRIVE, seed=seed + 700 + j,
+                                             faults=[fault_event(truth, size, 2.0)],
+                                             duration_s=drive_s)
+            else:
+                feats = plant_features(duration_s=40.0, seed=seed + 800 + j,
+                                       faults=[fault_event(truth, size, 2.0)])
+            norms, wins = {}, {}
+            per = {}
             for f, h in hyp.items():
-                h.reset()
-                v = np.array([h.residuals(fv).norm for fv in feats if fv.t_start > 12.0])
-                norms[f] = float(np.nanmedian(v))
-            best = min(norms, key=norms.get)
-            ratio = max(norms.values()) / max(min(norms.values()), 1e-12)
-            out["runs"][f"{truth}/{mode}"] = {"median_norm": norms, "min_norm_model": best,
-                                              "ratio": round(ratio, 3)}
-            if mode == "sweep":
+                rvs = h.stream(feats)
+                per[f] = np.array([rv.norm if rv.valid else np.nan for rv in rvs])
+            late = np.array([fv.t_start > 12.0 for fv in feats])
+            both = late & np.isfinite(per[AMBIGUOUS[0]]) & np.isfinite(per[AMBIGUOUS[1]])
+            for f in hyp:
+                norms[f] = round(float(np.median(per[f][both])), 4) if both.any() else None
+            stack = np.vstack([per[f][both] for f in AMBIGUOUS])
+            for k, f in enumerate(AMBIGUOUS):
+                wins[f] = round(float(np.mean(np.argmin(stack, axis=0) == k)), 3) \
+                    if both.any() else None
+            best = max(wins, key=lambda f: wins[f] or 0.0)
+            out["runs"][f"{truth}/{mode}"] = {
+                "size": size, "segments_compared": int(both.sum()), "median_norm": norms,
+                "fraction_min_norm": wins, "min_norm_model": best}
+            if mode == "drive":
                 correct += best == truth
-    out["verdict"] = {"separated_over_sweep": correct == len(AMBIGUOUS),
-                      "note": "at one steady operating point both hypotheses explain the eta_V "
-                              "deficit with some size; across operating points only the true "
-                              "fault's shape fits"}
+    steady_ok = all(out["runs"][f"{f}/steady"]["min_norm_model"] == f for f in AMBIGUOUS)
+    out["verdict"] = {
+        "separated_in_driving": correct == len(AMBIGUOUS),
+        "separated_at_steady_point": steady_ok,
+        "note": "the paper's table gives both faults '+,o,o,o,o'; each hypothesis model explains "
+                "the residuals with one size parameter, and only the true fault's effect map "
+                "fits across operating points (and, on this plant, in the MAF amplitude too)"}
     return out
 
 

@@ -282,12 +282,13 @@ class SymptomGenerator:
 
 
 def isolate(symptom_levels: Sequence[int] | Mapping[str, int],
-            table: Mapping[str, Sequence[int]]) -> list[str]:
+            table: Mapping[str, Sequence[int]], *, max_mismatch: int = 0) -> list[str]:
     """Candidate faults whose table signature matches the symptoms.
 
     ``symptom_levels`` in :data:`SYMPTOMS` order (or a mapping by symptom name). Exact matches
-    first; if there is none, faults whose signature matches in sign (``+`` == ``++``). No
-    symptom at all -> no candidate.
+    first; if there is none, faults whose signature matches in sign (``+`` == ``++``); if
+    there is none and ``max_mismatch > 0``, the faults with the fewest symptoms of different
+    sign, up to ``max_mismatch`` of them. No symptom at all -> no candidate.
     """
     if isinstance(symptom_levels, Mapping):
         obs = np.array([int(symptom_levels.get(s, 0)) for s in SYMPTOMS])
@@ -295,7 +296,7 @@ def isolate(symptom_levels: Sequence[int] | Mapping[str, int],
         obs = np.asarray(symptom_levels, dtype=int)
     if not obs.any():
         return []
-    exact, signed = [], []
+    exact, signed, dist = [], [], {}
     for fault, sig in table.items():
         sig = np.asarray(sig, dtype=int)
         if sig.shape != obs.shape:
@@ -304,7 +305,11 @@ def isolate(symptom_levels: Sequence[int] | Mapping[str, int],
             exact.append(fault)
         elif np.array_equal(np.sign(sig), np.sign(obs)):
             signed.append(fault)
-    return exact or signed
+        dist[fault] = int(np.sum(np.sign(sig) != np.sign(obs)))
+    if exact or signed or max_mismatch <= 0:
+        return exact or signed
+    best = min(dist.values())
+    return [f for f, d in dist.items() if d == best] if best <= max_mismatch else []
 
 
 def _parse_signature(sig) -> tuple[int, ...]:
@@ -530,8 +535,8 @@ class ReferenceResidualModel:
         rv = _finish(fv, *self._qs.apply(fv, rv.values, rv.valid, rv.status), cfg,
                      self.model_id)
         if self.window == 1 or not rv.valid or cfg is None:
-            if not rv.valid:
-                self._zbuf.clear()
+            # Invalid segments (transients) are skipped, not forgotten: the window spans the
+            # quasi-stationary stretches on either side, i.e. several operating points.
             return rv
         self._zbuf.append(_z(rv.values, cfg))
         return ResidualVector(**{**rv.__dict__, "norm": block_rms(np.array(self._zbuf))})
@@ -574,9 +579,15 @@ class FaultHypothesisResidualModel:
         self.size_estimate = 0.0
         self._qs.reset()
 
-    def direction(self, n, rho2) -> np.ndarray:
-        """g(n, rho2): normalised residual change per unit fault size, (N, m)."""
-        X = np.column_stack([np.atleast_1d(n), np.atleast_1d(rho2)]).astype(float)
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        """Feature names the effect maps take (e.g. ``("n", "rho2", "fuel")``)."""
+        first = next(iter(self.directions.values()), None)
+        return tuple(first.input_names) if first is not None else ()
+
+    def direction(self, X) -> np.ndarray:
+        """g(x): normalised residual change per unit fault size at (N, p) inputs, (N, m)."""
+        X = np.atleast_2d(np.asarray(X, dtype=float))
         G = np.zeros((X.shape[0], len(self.config.names)))
         for j, name in enumerate(self.config.names):
             if name in self.directions:
@@ -588,20 +599,54 @@ class FaultHypothesisResidualModel:
         rv = _finish(fv, *self._qs.apply(fv, rv.values, rv.valid, rv.status), None,
                      self.model_id)
         if not rv.valid:
-            self._buf.clear()
             return rv
+        try:
+            g = self.direction([[fv.get(k) for k in self.inputs]])[0]
+        except KeyError as exc:
+            return ResidualVector(**{**rv.__dict__, "valid": False,
+                                     "status": f"feature missing: {exc}"})
+        if not np.all(np.isfinite(g)):
+            return ResidualVector(**{**rv.__dict__, "valid": False,
+                                     "status": "fault effect map not defined here"})
+        return self._step(rv, g)
+
+    def _step(self, rv: ResidualVector, g: np.ndarray) -> ResidualVector:
         z = _z(rv.values, self.config)
-        g = self.direction(fv.get("n"), fv.get("rho2"))[0]
         self._buf.append((z, g))
         Z = np.array([b[0] for b in self._buf])
         G = np.array([b[1] for b in self._buf])
         den = float(np.sum(G * G))
         s = max(0.0, float(np.sum(G * Z)) / den) if den > 0 else 0.0
         self.size_estimate = s
-        E = Z - s * G
-        norm = block_rms(E) + self.penalty
+        norm = block_rms(Z - s * G) + self.penalty
         values = rv.values - s * g * np.asarray(self.config.scale)
         return ResidualVector(**{**rv.__dict__, "values": values, "norm": norm})
+
+    def stream(self, features: Sequence[FeatureVector]) -> list[ResidualVector]:
+        """Residual vectors of a whole stream (offline), vectorised where it can be; equal to
+        calling :meth:`residuals` segment by segment after :meth:`reset`."""
+        feats = list(features)
+        self.reset()
+        base = stream_residuals(self.models, feats, config=self.config, model_id=self.model_id)
+        idx = [i for i, rv in enumerate(base) if rv.valid]
+        out = [ResidualVector(**{**rv.__dict__, "norm": float("nan")}) for rv in base]
+        if not idx:
+            return out
+        try:
+            X = np.array([[feats[i].get(k) for k in self.inputs] for i in idx])
+        except KeyError as exc:
+            for i in idx:
+                out[i] = ResidualVector(**{**base[i].__dict__, "valid": False,
+                                           "status": f"feature missing: {exc}"})
+            return out
+        G = self.direction(X)
+        for row, i in enumerate(idx):
+            if not np.all(np.isfinite(G[row])):
+                out[i] = ResidualVector(**{**base[i].__dict__, "valid": False,
+                                           "status": "fault effect map not defined here"})
+                continue
+            out[i] = self._step(base[i], G[row])
+        return out
 
     def save(self, directory) -> Path:
         import json
@@ -632,10 +677,13 @@ def load_directions(directory) -> tuple[str, dict[str, object], dict]:
 def identify_fault_hypothesis(models: ReferenceModelSet, config: SymptomConfig,
                               features: Sequence[FeatureVector], *, fault: str, size: float,
                               t_from: float, residual_names: Sequence[str] = RESIDUALS,
-                              max_models: int = 6, model_id: str | None = None,
+                              inputs: Sequence[str] = ("n", "rho2", "fuel"),
+                              max_models: int = 8, model_id: str | None = None,
                               window: int = 40) -> FaultHypothesisResidualModel:
-    """Identify ``g(n, rho2)`` from feature vectors with the fault (of ``size``) present from
-    plant time ``t_from`` on: LOLIMOT fits of the normalised nominal residuals / size."""
+    """Identify the effect map ``g(x)`` from feature vectors with the fault (of ``size``)
+    present from plant time ``t_from`` on: LOLIMOT fits of the normalised nominal residuals
+    divided by the size, over ``inputs`` (fuel matters: an EGR leak flow follows the exhaust
+    back pressure, i.e. the load, not only speed and boost density)."""
     from fdi_ros.core.lolimot import Lolimot
 
     if not size > 0:
@@ -646,12 +694,15 @@ def identify_fault_hypothesis(models: ReferenceModelSet, config: SymptomConfig,
     if len(keep) < 200:
         raise ValueError(f"only {len(keep)} valid faulty segments: too few for {fault}")
     Z = np.array([_z(rvs[i].values, config) for i in keep]) / size
-    X = np.array([[feats[i].get("n"), feats[i].get("rho2")] for i in keep])
+    try:
+        X = np.array([[feats[i].get(k) for k in inputs] for i in keep])
+    except KeyError as exc:
+        raise ValueError(f"fault-hypothesis input missing from the features: {exc}") from None
     directions = {}
     for name in residual_names:
         j = config.names.index(name)
         m = Lolimot(max_models=max_models, min_samples_per_model=50)
-        m.fit(X, Z[:, j], input_names=("n", "rho2"), output_name=f"g_{name}")
+        m.fit(X, Z[:, j], input_names=tuple(inputs), output_name=f"g_{name}")
         directions[name] = m
     return FaultHypothesisResidualModel(models=models, config=config, fault=fault,
                                         directions=directions,

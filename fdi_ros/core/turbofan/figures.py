@@ -69,10 +69,12 @@ def sweep_figure(sweep: list[dict], path: str | Path, *, paper_delay: float) -> 
 
     t0 = np.array([s["t0_s"] for s in sweep])
     false_ff = np.array([s["fault_free_false_isolations"] for s in sweep])
+    false_wide = np.array([s.get("fault_free_false_isolations_twice_sigma", 0) for s in sweep])
     wrong = np.array([s["wrong_isolations_in_cases"] for s in sweep])
     delay = np.array([s["mean_isolation_delay_s"] for s in sweep])
     fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
     ax[0].plot(t0, false_ff, "o-", label="false isolations, fault-free runs")
+    ax[0].plot(t0, false_wide, "x:", label="false isolations, 2x manufacturing spread")
     ax[0].plot(t0, wrong, "s--", label="wrong isolations, fault cases")
     ax[0].set_xlabel("hold time T0 [s]")
     ax[0].set_ylabel("count")

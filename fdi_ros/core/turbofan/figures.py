@@ -73,20 +73,21 @@ def sweep_figure(sweep: list[dict], path: str | Path, *, paper_delay: float) -> 
     wrong = np.array([s["wrong_isolations_in_cases"] for s in sweep])
     delay = np.array([s["mean_isolation_delay_s"] for s in sweep])
     fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
-    ax[0].plot(t0, false_ff, "o-", label="false isolations, fault-free runs")
-    ax[0].plot(t0, false_wide, "x:", label="false isolations, 2x manufacturing spread")
-    ax[0].plot(t0, wrong, "s--", label="wrong isolations, fault cases")
+    ax[0].plot(t0, false_ff, "o-", color="tab:blue", label="false isolations, fault-free runs")
+    ax[0].plot(t0, false_wide, "x:", color="tab:orange",
+               label="false isolations, 2x manufacturing spread")
+    ax[0].plot(t0, wrong, "s--", color="tab:red", label="wrong isolations, fault cases")
     ax[0].set_xlabel("hold time T0 [s]")
     ax[0].set_ylabel("count")
     ax0b = ax[0].twinx()
     ax0b.plot(t0, delay, "^-", color="tab:green", label="mean isolation delay")
     ax0b.axhline(paper_delay, color="tab:green", ls=":", lw=1)
     ax0b.set_ylabel("mean isolation delay [s]", color="tab:green")
-    ax[0].legend(fontsize=8, loc="upper center")
+    ax[0].legend(fontsize=8, loc="center right")
     total = false_ff + wrong
     ax[1].plot(delay, total, "o-")
-    for x, y, t in zip(delay, total, t0):
-        ax[1].annotate(f"T0={t:g}", (x, y), fontsize=7, xytext=(3, 3),
+    for j, (x, y, t) in enumerate(zip(delay, total, t0)):
+        ax[1].annotate(f"T0={t:g}", (x, y), fontsize=7, xytext=(3, 4 if j % 2 else -10),
                        textcoords="offset points")
     ax[1].axvline(paper_delay, color="grey", ls="--", label=f"paper, {paper_delay:.2f} s")
     ax[1].set_xlabel("mean isolation delay [s]")

@@ -70,6 +70,7 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
              realtime_factor: float = 1.0, timeout_s: float = 120.0,
              during: Callable[[Graph, GraphWatcher, LiveRun], None] | None = None,
              echo: Callable[[str], None] | None = None, watch_features: bool = False,
+             watch_blocks: bool = False,
              log: Callable[[str], None] = lambda s: None,
              stop_after_isolation_s: float | None = None) -> tuple[LiveRun, GraphWatcher]:
     """Launch, bring the bank on line, start the plant (or replayer), watch until the source
@@ -78,7 +79,7 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
     ``during(graph, watcher, run)`` is called on every watch iteration (tests kill nodes
     from it). Returns the run summary and the (closed) watcher with everything it saw.
     """
-    readers = 1 + (record is not None) + bool(watch_features)
+    readers = 1 + (record is not None) + bool(watch_blocks)
     over: dict[str, dict] = {"fdi_plant": {"realtime_factor": realtime_factor,
                                            "min_subscribers": readers},
                              "fdi_replayer": {"rate": realtime_factor,
@@ -86,7 +87,7 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
     if scenario is not None:
         over["fdi_plant"]["scenario"] = str(Path(scenario).resolve())
     graph = Graph(config, overrides=over, record=record, replay=replay, echo=echo)
-    w = GraphWatcher(watch_features=watch_features)
+    w = GraphWatcher(watch_features=watch_features, watch_blocks=watch_blocks)
     run = LiveRun(bag=str(record) if record else None)
     bank = [e.id for e in graph.cfg.bank]
     source = graph.source

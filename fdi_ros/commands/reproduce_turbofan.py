@@ -143,7 +143,8 @@ def run(args: argparse.Namespace) -> int:
                           "max_isolation_delay_s": round(float(np.max(delays)), 3)})
         report["t0_sweep"] = sweep
         ok = [s for s in sweep if s["fault_free_false_isolations"] == 0
-              and s["wrong_isolations_in_cases"] == 0 and math.isfinite(s["max_isolation_delay_s"])]
+              and s["wrong_isolations_in_cases"] == 0
+              and math.isfinite(s["max_isolation_delay_s"])]
         best = min(ok, key=lambda s: s["mean_isolation_delay_s"]) if ok else None
         report["goal"] = {
             "paper_mean_isolation_delay_s": round(PAPER_MEAN_DELAY_S, 3),

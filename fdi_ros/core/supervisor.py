@@ -12,7 +12,7 @@ and the live ROS supervisor node. It implements section 3.2 of Diao & Passino (2
   over the on-line set S; a change of I* away from the current fault model is a *detection*;
 * the **fault index** (paper eq. 18)
 
-  .. math:: F^*(k) = i \\quad\\text{if}\\quad I^*(j) = i \\;\\; \\forall\\, j:\\; k - T_0 \\le j \\le k
+  .. math:: F^*(k) = i \\quad\\text{if}\\quad I^*(j) = i \\;\\forall\\, j:\\; k - T_0 \\le j \\le k
 
   i.e. a fault situation is *isolated* only when the same model has had the minimum residual
   without interruption for at least ``T0`` seconds; this hold time buys robustness against

@@ -180,7 +180,7 @@ def _register() -> None:
 _register()
 
 
-# -- offline scenarios -----------------------------------------------------------------------------
+# -- offline scenarios ---------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Scenario:
     """A diagnosis run: fault events ``(t [s], {type: size})`` (sizes replace earlier ones)."""
@@ -323,7 +323,8 @@ def run_scenario(gm: GlobalModel, scenario: Scenario, *, t0_s: float,
         min_idx[k], f_idx[k] = d.min_residual_index, d.fault_index
         online.append(d.models_online)
     return ScenarioResult(scenario=scenario, t=sim["t"], y=y, wf=sim["wf"], yhat=pred[:, :, 0],
-                          residuals=res, norms=norm, min_index=min_idx, fault_index=f_idx, online=online,
+                          residuals=res, norms=norm, min_index=min_idx, fault_index=f_idx,
+                          online=online,
                           history=list(sup.history), model_ids=ids)
 
 

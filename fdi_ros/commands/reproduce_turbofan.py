@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     sims = {sc.name: tfb.simulate_plant(sc) for sc in scenarios}
     results = [tfb.run_scenario(gm, sc, t0_s=t0_s, xnh_weight=w, sim=sims[sc.name])
                for sc in scenarios]
-    report["cases"] = [r.summary() for r in results]
+    report["cases"] = [_with_paper(r.summary()) for r in results]
     if w > 0:
         # the paper's residual (XN2 only), for comparison
         paper_out = [tfb.run_scenario(gm, sc, t0_s=t0_s, xnh_weight=0.0, sim=sims[sc.name])
@@ -173,6 +173,16 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _with_paper(summary: dict) -> dict:
+    """Put the paper's detection/isolation time next to ours in every event."""
+    paper = summary["paper"]
+    for i, ev in enumerate(summary["events"]):
+        for key in ("detected_s", "isolated_s"):
+            vals = paper.get(key) or []
+            ev[f"paper_{key}"] = vals[i] if i < len(vals) else None
+    return summary
+
+
 def _fmt(v) -> str:
     return "-" if v is None else f"{v:.2f}"
 
@@ -180,12 +190,10 @@ def _fmt(v) -> str:
 def _print_text(report: dict) -> None:
     print(f"T0 = {report['t0_s']} s, XNH weight {report['xnh_weight']}")
     for case in report["cases"]:
-        paper = case["paper"]
         print(f"case {case['case']}: F* ever wrong: {case['fault_index_ever_wrong']}; final "
               f"{case['final_fault_model']}")
-        for i, ev in enumerate(case["events"]):
-            pd = (paper.get("detected_s") or [None] * 9)[i] if paper.get("detected_s") else None
-            pi = (paper.get("isolated_s") or [None] * 9)[i] if paper.get("isolated_s") else None
+        for ev in case["events"]:
+            pd, pi = ev["paper_detected_s"], ev["paper_isolated_s"]
             print(f"  fault at {ev['fault_at_s']:5.2f} s -> {ev['true_situation']:>22}: "
                   f"detected {_fmt(ev['detected_s'])} s (paper {_fmt(pd)}), isolated "
                   f"{_fmt(ev['isolated_s'])} s (paper {_fmt(pi)}) as {ev['isolated_model']}")

@@ -516,8 +516,10 @@ class LocalRegion(Effect):
         for ax, name in enumerate(names):
             lo_i = min(c[ax] for c in cluster)
             hi_i = max(c[ax] for c in cluster)
-            lo = -np.inf if lo_i == 0 else float(edges[ax][lo_i])
-            hi = np.inf if hi_i == shape[ax] - 1 else float(edges[ax][hi_i + 1])
+            # finite edges even at the ends of the training data: no extrapolation of a
+            # local effect beyond the operating points it was seen at
+            lo = float(edges[ax][lo_i])
+            hi = float(np.nextafter(edges[ax][hi_i + 1], np.inf))
             box[name] = [lo, hi]
         reg = {n: c[m] for n, c in zip(names, cols)}
 
@@ -532,8 +534,6 @@ class LocalRegion(Effect):
             e = edges[ax]
             for side in (0, 1):
                 cur = box[name][side]
-                if not np.isfinite(cur):
-                    continue
                 j = int(np.clip(np.searchsorted(e, cur), 1, len(e) - 2))
                 cands = np.linspace(e[j - 1], e[j + 1], 25)
                 best_v, best_g = cur, gain(box)

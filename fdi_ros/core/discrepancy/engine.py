@@ -2,9 +2,11 @@
 
 Procedure for each channel (greedy forward selection, at most ``max_findings`` steps):
 
-1. The valid samples are cut into contiguous blocks of equal duration (about 5 s). Block b is
-   held out in turn; the extensions are fitted on the other blocks minus a guard band of
-   ``guard_s`` on each side of b (the residuals of 20 Hz data are strongly autocorrelated, so a
+1. The valid samples are cut into contiguous blocks of equal duration (about 5 s, at least
+   24 blocks). In ``n_folds`` refits (default: one per block), fold k holds out the blocks
+   k, k + n_folds, ...; the
+   extensions are fitted on the other blocks minus a guard band of ``guard_s`` on each side
+   of every held-out block (the residuals of 20 Hz data are strongly autocorrelated, so a
    training sample right next to the held-out block would leak its value into the test).
 2. For every candidate (every catalogue effect, every explaining column, with and without an
    onset time) the out-of-block predictions give per block the held-out mean squared error
@@ -41,8 +43,11 @@ class DiscrepancyConfig:
 
     Attributes
     ----------
-    n_blocks : contiguous held-out blocks (and folds) per channel; default: one block per
-        ``block_s`` seconds, at least 16 and at most 60.
+    n_blocks : contiguous held-out blocks per channel (the units of the test); default: one
+        block per ``block_s`` seconds, at least 24 and at most 60.
+    n_folds : refits; fold k holds out the blocks k, k + n_folds, k + 2 n_folds, ...;
+        default one fold per block (leave one block out: an onset time, fitted on the rest,
+        is stable).
     block_s : target block duration [s] (long against the residual correlation time).
     alpha : family-wise significance level (Bonferroni over candidates and channels).
     min_gain_pct : smallest held-out RMSE gain [%] reported as a finding.
@@ -55,6 +60,7 @@ class DiscrepancyConfig:
 
     n_blocks: int | None = None
     block_s: float = 5.0
+    n_folds: int | None = None
     alpha: float = 0.05
     min_gain_pct: float = 2.0
     max_findings: int = 3
@@ -65,6 +71,8 @@ class DiscrepancyConfig:
     def __post_init__(self) -> None:
         if self.n_blocks is not None and self.n_blocks < 4:
             raise ValueError("n_blocks must be >= 4 for a paired test over blocks")
+        if self.n_folds is not None and self.n_folds < 2:
+            raise ValueError("n_folds must be >= 2")
         if not 0 < self.alpha < 1:
             raise ValueError("alpha must be in (0, 1)")
         if self.max_findings < 1:
@@ -331,7 +339,7 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
         summary[ch] = info
         chains[ch] = []
         tv = ctx.t[ok]
-        nb = cfg.n_blocks or int(np.clip(round((tv[-1] - tv[0]) / cfg.block_s), 16, 60))
+        nb = cfg.n_blocks or int(np.clip(round((tv[-1] - tv[0]) / cfg.block_s), 24, 60))
         info["n_blocks"] = nb
         if n_ok < 20 * nb:
             info["status"] = f"too few valid samples ({n_ok}) for {nb} blocks"
@@ -341,8 +349,16 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
         guard = 0.25 * blen if cfg.guard_s is None else cfg.guard_s
         bounds = [(ctx.t[blk == b].min(), ctx.t[blk == b].max()) if np.any(blk == b)
                   else (np.nan, np.nan) for b in range(nb)]
-        trains = [ok & ~((ctx.t >= lo - guard) & (ctx.t <= hi + guard)) for lo, hi in bounds]
-        tests = [blk == b for b in range(nb)]
+        nf = min(cfg.n_folds or nb, nb)
+        trains, tests = [], []
+        for k in range(nf):
+            held = list(range(k, nb, nf))  # interleaved blocks: every fold spans the record
+            near = np.zeros(ctx.n, dtype=bool)
+            for b in held:
+                lo, hi = bounds[b]
+                near |= (ctx.t >= lo - guard) & (ctx.t <= hi + guard)
+            trains.append(ok & ~near)
+            tests.append(np.isin(blk, held))
         # the folds, for effects that evaluate a parameter grid for all folds at once
         ctx.folds = np.array(trains, dtype=float)
         ctx.fold_ids = {id(tr): k for k, tr in enumerate(trains)}

@@ -76,11 +76,17 @@ class ExtendedModel:
 
     def predict(self, data: Measured) -> dict[str, np.ndarray]:
         """Baseline prediction with every fitted extension applied, per channel."""
-        ctxs = build_contexts(data, self.baseline)
+        base = self.baseline
+        if data.alpha is None and getattr(base, "orders", ()):
+            # mean-value data (segment means): the pulsation terms average out
+            base = base.without_pulsation()
+        ctxs = build_contexts(data, base)
         out = {}
         for ch, ctx in ctxs.items():
             pred = ctx.yhat
             for eff, params in self.chains.get(ch, []):
+                if eff.id == "missing_harmonic" and ctx.alpha is None:
+                    continue
                 pred = eff.apply(ctx, pred, params)
             out[ch] = pred
         return out

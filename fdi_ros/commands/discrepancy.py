@@ -1,0 +1,159 @@
+"""``fdi-ros discrepancy``: what the model gets wrong in measured data, why, and the gain.
+
+Loads measured data (CSV with our column names, any CSV + mapping YAML, or a bag directory),
+builds the plant's baseline model (identified on fault-free data, or loaded with
+``--baseline``), runs the discrepancy analysis (every catalogue effect fitted on training
+blocks, scored on held-out contiguous blocks, significance-tested, ranked by held-out gain)
+and writes the JSON contract; optionally a report (Markdown + PNGs) and the extended model
+(JSON + ``residual_model.yaml`` for the residual-model registry).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+COMMAND = ("discrepancy",)
+HELP = "find what the model gets wrong in measured data, name the cause, extend, measure the gain"
+
+LIU_DIR_DEFAULT = "../shared/data/liu_ice"
+LIU_MAPPING = "config/mappings/liu_ice.yaml"
+DIESEL_CACHE = Path("build/cache/discrepancy/diesel_baseline.json")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--plant", required=True, choices=["diesel", "liu_ice"],
+                        help="plant whose model is checked against the data")
+    parser.add_argument("--measured", required=True,
+                        help="measured data: CSV (our columns, or any columns with --mapping) "
+                             "or a bag directory")
+    parser.add_argument("--mapping", default=None,
+                        help=f"mapping YAML for a CSV (liu_ice default: {LIU_MAPPING})")
+    parser.add_argument("--json", required=True, help="output JSON file")
+    parser.add_argument("--report", default=None, help="report directory (Markdown + PNGs)")
+    parser.add_argument("--save-model", default=None,
+                        help="write the extended model JSON here (+ residual_model.yaml)")
+    parser.add_argument("--baseline", default=None,
+                        help="baseline model JSON (a saved baseline or extended model); "
+                             "default: identify on fault-free data")
+    parser.add_argument("--ident", nargs="*", default=None,
+                        help="fault-free CSVs to identify the baseline on (liu_ice default: "
+                             "the *_NF.csv files of the data directory)")
+    parser.add_argument("--ident-fraction", type=float, default=0.6,
+                        help="liu_ice: identify on this leading fraction of each file")
+    parser.add_argument("--data-dir", default=LIU_DIR_DEFAULT,
+                        help="liu_ice data directory (for the default identification files)")
+    parser.add_argument("--window", default=None,
+                        help="analyse only T0:T1 seconds of the measured data")
+    parser.add_argument("--effects", default=None,
+                        help="comma-separated catalogue effects to try (default: all)")
+    parser.add_argument("--alpha", type=float, default=0.05,
+                        help="family-wise significance level")
+    parser.add_argument("--min-gain", type=float, default=2.0,
+                        help="smallest held-out gain [%%] reported as a finding")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def load_baseline_file(path: Path):
+    from fdi_ros.core.discrepancy.model import FORMAT, ExtendedModel, baseline_from_dict
+
+    if not path.is_file():
+        raise FileNotFoundError(f"baseline model {path} not found")
+    try:
+        d = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from None
+    if d.get("format") == FORMAT:
+        return ExtendedModel.from_dict(d).baseline
+    return baseline_from_dict(d)
+
+
+def build_baseline(args, say):
+    """The plant's baseline model: loaded, or identified on fault-free data."""
+    from fdi_ros.core.measured import load_csv
+
+    if args.baseline:
+        return load_baseline_file(Path(args.baseline))
+    if args.plant == "liu_ice":
+        from fdi_ros.core.meanvalue import LIU_ICE_FAULT_FREE, identify_liu_ice
+
+        mapping = args.mapping or LIU_MAPPING
+        files = args.ident or [str(Path(args.data_dir) / f) for f in LIU_ICE_FAULT_FREE]
+        for f in files:
+            if not Path(f).is_file():
+                raise FileNotFoundError(f"identification file {f} not found (give --ident or "
+                                        f"--data-dir)")
+        say(f"identifying the speed-density model on the first {args.ident_fraction:.0%} of "
+            f"{', '.join(Path(f).name for f in files)}")
+        return identify_liu_ice([load_csv(f, mapping) for f in files],
+                                fraction=args.ident_fraction)
+    # diesel: the plant's fault-free runs (cached: they take seconds to simulate and fit)
+    from fdi_ros.core.discrepancy import scenarios as sc
+    from fdi_ros.core.meanvalue import SpeedDensityModel
+
+    if args.ident:
+        from fdi_ros.core.measured import load_measured
+
+        return sc.diesel_model_template().fit([load_measured(f, args.mapping)
+                                               for f in args.ident])
+    if DIESEL_CACHE.is_file():
+        return SpeedDensityModel.from_dict(json.loads(DIESEL_CACHE.read_text()))
+    say("identifying the diesel speed-density + pulsation model on 3 fault-free plant runs")
+    model = sc.diesel_baseline()
+    DIESEL_CACHE.parent.mkdir(parents=True, exist_ok=True)
+    DIESEL_CACHE.write_text(json.dumps(model.to_dict()))
+    return model
+
+
+def run(args: argparse.Namespace) -> int:
+    from fdi_ros.core.discrepancy import CATALOGUE, DiscrepancyConfig, discover
+    from fdi_ros.core.measured import load_measured
+
+    def say(msg: str) -> None:
+        if not args.quiet:
+            print(msg, flush=True)
+
+    mapping = args.mapping or (LIU_MAPPING if args.plant == "liu_ice" else None)
+    data = load_measured(args.measured, mapping)
+    if args.window:
+        try:
+            t0, t1 = (float(x) for x in args.window.split(":"))
+        except ValueError:
+            raise ValueError(f"--window must be T0:T1 in seconds, got {args.window!r}") from None
+        data = data.window(t0, t1)
+    effects = CATALOGUE if not args.effects else tuple(e.strip() for e in
+                                                       args.effects.split(","))
+    cfg = DiscrepancyConfig(alpha=args.alpha, min_gain_pct=args.min_gain, effects=effects)
+    baseline = build_baseline(args, say)
+    missing = [s for s in baseline.inputs + baseline.channels if s not in data.signals]
+    if missing:
+        raise ValueError(f"{args.measured}: the {args.plant} model needs signals {missing}; "
+                         f"the data has {sorted(data.signals)} (a mapping file renames columns)")
+    say(f"analysing {data.n_samples} samples ({data.t[-1] - data.t[0]:.1f} s) of "
+        f"{data.source}")
+    res, ext = discover(data, baseline, config=cfg, progress=say if not args.quiet else None)
+    doc = res.to_dict()
+    doc.update({"plant": args.plant, "measured": str(args.measured),
+                "baseline": baseline.to_dict()})
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=1))
+    say(f"{res.verdict}: {res.message}")
+    for f in res.findings:
+        say(f"  #{f.rank} {f.label} on {f.channel}: held-out RMSE {f.rmse_before:.4g} -> "
+            f"{f.rmse_after:.4g} ({f.gain_pct:.1f} %), p_adj {f.p_adjusted:.2g}")
+    if args.save_model:
+        from fdi_ros.core.discrepancy.residual import write_spec
+
+        path = ext.save(args.save_model)
+        write_spec(path)
+        say(f"extended model -> {path}")
+    if args.report:
+        from fdi_ros.core.discrepancy.report import write_report
+
+        md = write_report(args.report, data, baseline, ext, res,
+                          title=f"Discrepancy analysis: {args.plant} model vs "
+                                f"{Path(args.measured).name}")
+        say(f"report -> {md}")
+    return 0

@@ -117,6 +117,7 @@ class Finding:
     significant: bool
     n_params: int
     step: int
+    alternatives: list = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return _jsonable(asdict(self))
@@ -421,13 +422,31 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
                          f"{' (significant)' if sig else ''}")
             if not sig:
                 break
+            # other effects the held-out data cannot tell apart from the choice (within one
+            # standard error): the report names them, with their own fitted parameters
+            alternatives = []
+            full_pred = None
+            for c, _ in scored:
+                if c.effect == choice.effect:
+                    continue
+                d = c.mse_blocks - choice.mse_blocks
+                d = d[np.isfinite(d)]
+                if d.size >= 3 and d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size):
+                    if full_pred is None:
+                        full_pred, _ = fit_chain(ctx, chain, ok)
+                    alt = by_label[c.label]
+                    alternatives.append({"effect": c.effect, "label": c.label,
+                                         "gain_pct": c.gain_pct, "p_adjusted": c.p_adjusted,
+                                         "params": alt.fit(ctx, full_pred, ok, refine=True)})
             chain.append(eff)
             oof[ch][f"after_{step + 1}"] = next(a for c, a in scored if c is choice)
             findings.append(Finding(rank=0, effect=choice.effect, label=choice.label,
                                     channel=ch, params={}, rmse_before=choice.rmse_before,
                                     rmse_after=choice.rmse_after, gain_pct=choice.gain_pct,
                                     p_value=choice.p_value, p_adjusted=choice.p_adjusted,
-                                    p_dm=choice.p_dm, significant=True, n_params=choice.n_params, step=step + 1))
+                                    p_dm=choice.p_dm, significant=True,
+                                    n_params=choice.n_params, step=step + 1,
+                                    alternatives=alternatives))
         # the extension as saved: refitted on every valid sample
         ctx.cache.clear()
         _, params = fit_chain(ctx, chain, ok, refine=True)

@@ -184,3 +184,19 @@ def test_live_runner_preprocessor_and_bank_isolate_a_hub_fault(model_file):
         run2.inject(FaultEvent(t=1.0, fault="hub_gigantic"))
     with pytest.raises(ValueError, match="size"):
         run2.inject(FaultEvent(t=1.0, fault="hub", size=-1.0))
+
+
+def test_lm_fit_of_interpolation_widths(gm, tmp_path):
+    from fdi_ros.core.turbofan.models import fit_widths
+
+    fitted, res = fit_widths(gm, n_random=6, seed=2, duration_s=2.0)
+    assert res.success and res.n_points == 6 and res.nfev > 1
+    assert res.rms_after <= res.rms_before
+    assert all(w > 0 for w in res.x) and fitted.widths == res.x
+    again = GlobalModel.load(fitted.save(tmp_path / "w.npz"))
+    assert again.widths == fitted.widths
+    np.testing.assert_allclose(again.weights(gm.nodes[5] + 0.01), fitted.weights(
+        gm.nodes[5] + 0.01))
+    assert fitted.same_structure(gm.grid) and not fitted.same_structure(
+        GridSpec(ALT=(15000.0,), XM=(0.7,), deterioration=(0.0, 0.2),
+                 region=SMALL_GRID.region))

@@ -72,14 +72,14 @@ def run(args: argparse.Namespace) -> int:
     stale = False
     if model_path.exists() and not args.retrain:
         gm = GlobalModel.load(model_path)
-        stale = gm.signature != plant_signature() or gm.grid != settings.grid
+        stale = gm.signature != plant_signature() or not gm.same_structure(settings.grid)
         if stale:
             print(f"{model_path}: trained on another plant version or grid; training again",
                   file=sys.stderr)
     if args.retrain or stale or not model_path.exists():
         from fdi_ros.commands.train_turbofan import train
 
-        gm, _ = train(settings, out=model_path, progress=not args.no_progress)
+        gm, _, _ = train(settings, out=model_path, progress=not args.no_progress)
         report["training"] = gm.report.as_dict()
     else:
         report["training"] = gm.report.as_dict() if gm.report else None

@@ -20,28 +20,43 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="graph/turbofan configuration (section turbofan:)")
     parser.add_argument("--out", default=None, help="model file (default: model_path of config)")
     parser.add_argument("--seed", type=int, default=None, help="training-input seed")
+    parser.add_argument("--fit-widths", action="store_true",
+                        help="also fit the interpolation widths by LM on off-node validation "
+                             "runs (better between nodes, blurrier on them; off by default)")
     parser.add_argument("--json", action="store_true", help="print the report as JSON only")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def train(settings, *, out=None, seed=None, progress=True):
-    """Train and save the global model of ``settings``; returns (model, path)."""
-    from fdi_ros.core.turbofan.models import train_global
+def train(settings, *, out=None, seed=None, progress=True, fit_widths=False):
+    """Train and save the global model of ``settings``; returns (model, path, width fit)."""
+    import numpy as np
 
-    gm = train_global(settings.grid, n_rules=settings.n_rules,
-                      seed=settings.training_seed if seed is None else seed,
-                      duration_s=settings.training_duration_s, max_nfev=settings.max_nfev,
-                      progress=progress)
+    from fdi_ros.core.turbofan import bank as tfb
+    from fdi_ros.core.turbofan import models as tfm
+
+    gm = tfm.train_global(settings.grid, n_rules=settings.n_rules,
+                          seed=settings.training_seed if seed is None else seed,
+                          duration_s=settings.training_duration_s, max_nfev=settings.max_nfev,
+                          progress=progress)
+    fit = None
+    if fit_widths:
+        extra = []
+        for m in tfb.PAPER_BANK:  # the bank's own situations, on the fault nodes
+            u = tfb.fault_units(m.faults)
+            extra.append([*settings.condition, settings.deterioration, u["fan"], u["hub"]])
+        gm, fit = tfm.fit_widths(gm, extra_points=np.array(extra))
     path = gm.save(out or settings.model_path)
-    return gm, path
+    return gm, path, fit
 
 
 def run(args: argparse.Namespace) -> int:
     from fdi_ros.core.turbofan.settings import load_settings
 
     settings = load_settings(args.config)
-    gm, path = train(settings, out=args.out, seed=args.seed, progress=not args.no_progress)
-    report = {"model": str(path), **gm.report.as_dict(), "xnl_range_rpm": gm.xnl_range}
+    gm, path, fit = train(settings, out=args.out, seed=args.seed,
+                          progress=not args.no_progress, fit_widths=args.fit_widths)
+    report = {"model": str(path), **gm.report.as_dict(), "xnl_range_rpm": gm.xnl_range,
+              "width_fit": fit.as_dict() if fit else None}
     if args.json:
         print(json.dumps(report, indent=2))
     else:
@@ -50,4 +65,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"  worst RMSE: XNLdot {report['rmse_xnldot_max']:.3f} rpm/s, "
               f"XNHdot {report['rmse_xnhdot_max']:.3f} rpm/s; mean LM evaluations "
               f"{report['nfev_mean']:.1f}")
+        if fit:
+            print(f"  interpolation widths {tuple(round(w, 3) for w in fit.x)} (from "
+                  f"{fit.x0}): validation XNLdot RMS {fit.rms_before:.1f} -> "
+                  f"{fit.rms_after:.1f} rpm/s")
     return 0

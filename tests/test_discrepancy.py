@@ -1,0 +1,178 @@
+"""Discrepancy engine units: oracles for the effect fits, the tests, the extended model.
+
+Fast synthetic data (no plant): a known model ``yhat`` and measured ``y = effect(yhat) +
+noise``; the plant-based hidden-effect tests are in ``test_discrepancy_hidden.py``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fdi_ros.core.discrepancy import DiscrepancyConfig, ExtendedModel, analyse
+from fdi_ros.core.discrepancy.context import ChannelContext, orifice_flux
+from fdi_ros.core.discrepancy.effects import (DeadTime, GainError, InputDependence,
+                                              MissingHarmonic, Offset, SensorLag, delay,
+                                              effect_from_dict, lowpass)
+from fdi_ros.core.discrepancy.engine import loss_differential_p, paired_p
+from fdi_ros.core.measured import Measured
+from fdi_ros.core.meanvalue import SpeedDensityModel
+
+
+def _ctx(y, yhat, t, **kw):
+    return ChannelContext(channel="y", unit="", t=t, y=y, yhat=yhat,
+                          segment=np.zeros(t.size, dtype=int), **kw)
+
+
+def _signal(rng, t):
+    return 50 + 20 * np.sin(2 * np.pi * t / 17) + 10 * np.sin(2 * np.pi * t / 5.3 + 1)
+
+
+def test_offset_and_gain_equal_least_squares():
+    rng = np.random.default_rng(0)
+    t = np.arange(0, 60, 0.05)
+    yhat = _signal(rng, t)
+    y = 1.07 * yhat + 0.5 + rng.normal(0, 0.3, t.size)
+    ctx = _ctx(y, yhat, t)
+    ok = np.ones(t.size, bool)
+    b = Offset().fit(ctx, yhat, ok)["offset"]
+    assert b == pytest.approx(np.mean(y - yhat), rel=1e-12)
+    g = GainError().fit(ctx, yhat, ok)["gain"]
+    assert g == pytest.approx(np.dot(y, yhat) / np.dot(yhat, yhat), rel=1e-12)
+
+
+def test_onset_is_found():
+    rng = np.random.default_rng(1)
+    t = np.arange(0, 100, 0.05)
+    yhat = _signal(rng, t)
+    y = yhat * np.where(t >= 63.2, 1.1, 1.0) + rng.normal(0, 0.2, t.size)
+    p = GainError(onset=True).fit(_ctx(y, yhat, t), yhat, np.ones(t.size, bool))
+    assert p["onset_s"] == pytest.approx(63.2, abs=0.3)
+    assert p["gain"] == pytest.approx(1.1, abs=0.003)
+
+
+def test_lowpass_equals_textbook_recursion_on_uneven_time():
+    rng = np.random.default_rng(2)
+    t = np.cumsum(rng.uniform(0.001, 0.004, 5000))
+    x = rng.normal(size=t.size)
+    for tau in (1e-4, 0.02, 0.5):
+        ref = np.empty_like(x)
+        ref[0] = x[0]
+        for k in range(1, x.size):
+            a = math.exp(-(t[k] - t[k - 1]) / tau)
+            ref[k] = a * ref[k - 1] + (1 - a) * x[k]
+        np.testing.assert_allclose(lowpass(x, t, np.zeros(t.size, int), tau), ref, atol=1e-10)
+
+
+@pytest.mark.parametrize("effect,truth,key", [(SensorLag(), 0.23, "tau_s"),
+                                              (DeadTime(), 0.17, "delay_s")])
+def test_lag_and_delay_recovered(effect, truth, key):
+    rng = np.random.default_rng(3)
+    t = np.arange(0, 60, 0.01)
+    yhat = _signal(rng, t) + np.cumsum(rng.normal(0, 0.3, t.size))
+    seg = np.zeros(t.size, int)
+    clean = lowpass(yhat, t, seg, truth) if key == "tau_s" else delay(yhat, t, seg, truth)
+    y = clean + rng.normal(0, 0.05, t.size)
+    p = effect.fit(_ctx(y, yhat, t), yhat, np.ones(t.size, bool), refine=True)
+    assert p[key] == pytest.approx(truth, rel=0.03)
+
+
+def test_input_dependence_and_harmonic_recovered():
+    rng = np.random.default_rng(4)
+    t = np.arange(0, 60, 0.002)
+    alpha = 6 * 2000 * t
+    yhat = _signal(rng, t)
+    x = np.sin(2 * np.pi * t / 23)
+    y = yhat + 3.0 * (x - x.mean()) / x.std() + 2.0 * np.cos(2 * np.pi * 3 * alpha / 180 + 0.7)
+    y += rng.normal(0, 0.3, t.size)
+    ctx = _ctx(y, yhat, t, columns={"x": x}, alpha=alpha)
+    ok = np.ones(t.size, bool)
+    p = InputDependence(column="x").fit(ctx, yhat, ok)
+    assert p["coef"][0] == pytest.approx(3.0, rel=0.02)
+    h = MissingHarmonic().fit(ctx, yhat, ok)
+    assert h["order"] == 3.0 and h["amplitude"] == pytest.approx(2.0, rel=0.03)
+    assert h["phase_deg"] == pytest.approx(math.degrees(0.7), abs=2.0)
+
+
+def test_orifice_flux_choked_and_subsonic():
+    # choked: q = p / sqrt(R T) * sqrt(kappa) * (2 / (kappa + 1)) ** ((kappa + 1) / (2 (kappa - 1)))
+    k = 1.4
+    q = orifice_flux(np.array([1e5]), np.array([300.0]), np.array([2e4]))[0]
+    ref = 1e5 / math.sqrt(287.06 * 300) * math.sqrt(k) * (2 / (k + 1)) ** ((k + 1) / (2 * (k - 1)))
+    assert q == pytest.approx(ref, rel=1e-9)
+    assert orifice_flux(np.array([1e5]), np.array([300.0]), np.array([1e5]))[0] == 0.0
+
+
+def test_tests_reject_noise_and_accept_consistent_gain():
+    rng = np.random.default_rng(5)
+    assert paired_p(np.ones(20), np.ones(20)) == 1.0
+    assert paired_p(np.full(20, 2.0) + rng.normal(0, .1, 20), np.ones(20)) < 1e-4
+    e = rng.normal(size=2000)
+    p, lag = loss_differential_p(e, e + rng.normal(0, 0.01, 2000))
+    assert p > 0.05 and lag >= 1
+
+
+def test_null_white_noise_is_consistent_over_seeds():
+    for seed in range(4):
+        rng = np.random.default_rng(100 + seed)
+        t = np.arange(0, 120, 0.05)
+        yhat = _signal(rng, t)
+        y = yhat + rng.normal(0, 0.5, t.size)
+        ctx = _ctx(y, yhat, t, columns={"u": rng.normal(size=t.size).cumsum()},
+                   region={"a": yhat, "b": np.sin(t / 7)})
+        res = analyse({"y": ctx})
+        assert res.verdict == "consistent", [(f.label, f.p_adjusted) for f in res.findings]
+
+
+def test_config_is_validated():
+    with pytest.raises(ValueError):
+        DiscrepancyConfig(n_blocks=2)
+    with pytest.raises(ValueError):
+        DiscrepancyConfig(effects=("nonsense",))
+    with pytest.raises(ValueError):
+        DiscrepancyConfig(alpha=0.0)
+
+
+def test_extended_model_save_load_roundtrip(tmp_path):
+    rng = np.random.default_rng(6)
+    t = np.arange(0, 90, 0.05)
+    n = 2000 + 800 * np.sin(2 * np.pi * t / 31)
+    p = 6e4 + 3e4 * np.sin(2 * np.pi * t / 13 + 1)
+    T = np.full(t.size, 300.0)
+    eta = 0.8 + 0.05 * (n - 2000) / 800
+    m_th = n / 120 * 2.0e-3 * p / (287.06 * T) * 3600
+    maf = eta * m_th + rng.normal(0, 0.2, t.size)
+    sig = {"n": n, "p_im": p, "T_im": T, "maf": maf, "p_amb": np.full(t.size, 1e5),
+           "T_amb": np.full(t.size, 295.0)}
+    base = SpeedDensityModel(displacement_l=2.0, degree=1).fit(
+        Measured(t=t, signals=sig, units={}, source="ident"))
+    # one-model oracle: eta_V linear in n is identified exactly
+    assert base.predict(Measured(t=t, signals=sig, units={}))["maf"] == pytest.approx(
+        eta * m_th, abs=0.05)
+    meas = dict(sig, maf=1.08 * maf)
+    data = Measured(t=t, signals=meas, units={"maf": "kg/h"}, source="meas")
+    from fdi_ros.core.discrepancy import discover
+
+    res, ext = discover(data, base)
+    assert res.findings[0].effect == "gain_error"
+    path = ext.save(tmp_path / "ext.json")
+    back = ExtendedModel.load(path)
+    np.testing.assert_allclose(back.predict(data)["maf"], ext.predict(data)["maf"])
+    assert effect_from_dict(Offset(onset=True).to_dict()) == Offset(onset=True)
+    # and through the residual-model registry
+    from fdi_ros.core.discrepancy.residual import write_spec
+    from fdi_ros.core.residual_models import load_residual_model
+    from fdi_ros.core.types import FeatureVector
+
+    write_spec(path)
+    rm = load_residual_model(tmp_path, model_id="extended")
+    names = ("n", "p_im", "T_im", "maf", "p_amb", "T_amb")
+    out = None
+    for k in range(40):
+        vals = np.array([meas[c][k] for c in names])
+        fv = FeatureVector(plant="x", index=k, t_start=t[k], t_end=t[k] + 0.05, alpha_start=0,
+                           valid=True, status="", names=names, units=("",) * 6, values=vals)
+        out = rm.residuals(fv)
+    assert out.valid and abs(out.values[0]) < 1.0  # the gain error is explained

@@ -197,3 +197,18 @@ def test_fault_hypotheses_separate_faults_of_equal_signature(identified, tmp_pat
         np.testing.assert_allclose(a.values, b.values)
         np.testing.assert_allclose(a.norm, b.norm)
     del loaded
+
+
+def test_storage_coefficient_recovered_with_the_static_map():
+    from fdi_ros.core.diesel.reference import storage_regressor
+
+    d = _synthetic(9000, 3)
+    d["t"] = 0.015 * np.arange(9000)
+    d["p2"] = d["rho2"] * 287.0 * 320.0
+    x = storage_regressor(d["t"], d["n"], d["p2"], 2)
+    d["eta_v"] = d["eta_v"] + 400.0 * np.nan_to_num(x)   # stored air passes the MAF
+    res = identify_reference_models(d, config=IdentificationConfig(max_models=12))
+    assert res.models.info["storage_coeff"] == pytest.approx(400.0, rel=0.05)
+    off = identify_reference_models(d, config=IdentificationConfig(max_models=12,
+                                                                   storage_correction=False))
+    assert res.nrmse_test["eta_v"] < off.nrmse_test["eta_v"]

@@ -110,3 +110,41 @@ def test_isolation_with_one_mismatch_allowed():
     assert sorted(isolate((2, -1, 0, 0, 0), PAPER_TABLE, max_mismatch=1)) == [
         "crankcase_vent_open", "egr_leaky", "egr_stuck_open"]   # each differs in one symptom
     assert isolate((-1, 0, 0, 0, 0), PAPER_TABLE, max_mismatch=1) == ["leak_ic_engine"]
+
+
+def _fv(i, t, n, p2, fuel, valid=True):
+    from fdi_ros.core.types import FeatureVector
+
+    names = ("n", "p2", "fuel")
+    return FeatureVector(plant="diesel", index=i, t_start=t - 0.015, t_end=t, alpha_start=0.0,
+                         valid=valid, status="", names=names, units=("",) * 3,
+                         values=np.array([n, p2, fuel], float))
+
+
+def test_quasi_stationarity_gate_and_storage_correction():
+    from fdi_ros.core.diesel.symptoms import QuasiStationarity
+
+    cfg = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(1.0,) * 5,
+                        storage_coeff=500.0, settle_s=0.5, max_speed_change=50.0,
+                        max_fuel_change=1.0, rate_lag=2)
+    qs = QuasiStationarity(cfg)
+    r0 = np.zeros(5)
+    out = []
+    for i in range(200):
+        t = 0.015 * (i + 1)
+        n = 2000.0 if t < 1.5 else 2200.0          # a speed step at 1.5 s
+        p2 = 150000.0 + 3000.0 * t                 # boost rising at 3 kPa/s
+        out.append(qs.apply(_fv(i, t, n, p2, 20.0), r0, True, ""))
+    valid = np.array([o[1] for o in out])
+    t = 0.015 * (np.arange(200) + 1)
+    assert not valid[t < 0.4].any()                # history shorter than settle_s
+    assert valid[(t > 0.6) & (t < 1.49)].all()
+    assert not valid[(t > 1.5) & (t < 1.99)].any()  # speed moved 200 rpm within 0.5 s
+    assert valid[t > 2.05].all() and "transient" in out[110][2]
+    # r_eta correction: storage_coeff * (dp2/dt) / (n p2), dp2/dt = 3000 Pa/s exactly.
+    k = 80
+    p2 = 150000.0 + 3000.0 * t[k]
+    assert out[k][0][0] == pytest.approx(500.0 * 3000.0 / (2000.0 * p2), rel=1e-6)
+    # A segment flagged invalid by the front end restarts the history.
+    assert not qs.apply(_fv(300, 5.0, 2200.0, 1.6e5, 20.0, valid=False), r0, False, "x")[1]
+    assert not qs.apply(_fv(301, 5.015, 2200.0, 1.6e5, 20.0), r0, True, "")[1]

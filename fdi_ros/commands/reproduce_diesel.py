@@ -30,6 +30,7 @@ FAULT_RUNS = (("crankcase_vent_open", 10.0), ("leak_ic_engine", 4.0), ("leak_ic_
               ("swirl_flap_closed", 1.0), ("egr_stuck_open", 1.0), ("egr_leaky", 4.0))
 AMBIGUOUS = ("crankcase_vent_open", "egr_leaky")
 FST = "config/diesel_fst.yaml"
+REPRO_DIR = Path("build/reproduce/diesel")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -277,7 +278,7 @@ def compare_hypotheses(mset, scfg, models_dir, *, seed: int, progress: bool,
                                      faults=[fault_event(f, sizes[f], 5.0)])
         hyp[f] = identify_fault_hypothesis(mset, scfg, feats, fault=f, size=sizes[f],
                                            t_from=6.0, window=window)
-        hyp[f].save(Path(models_dir) / "hypotheses" / f)
+        hyp[f].save(REPRO_DIR / "hypotheses" / f)   # not the live bank's models
     out: dict = {"window_segments": window, "sizes_identified": sizes, "runs": {}}
     correct = 0
     for j, truth in enumerate(AMBIGUOUS):

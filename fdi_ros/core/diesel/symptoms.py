@@ -97,7 +97,9 @@ class SymptomConfig:
     ----------
     centre : fault-free mean of each residual (subtracted first), RESIDUALS order.
     threshold : symptom threshold on the centred, filtered residual (units as the residual).
-    scale : fault-free standard deviation of the filtered residual (normalises ``norm``).
+    scale : fault-free (robust) standard deviation of the filtered residual, for reports.
+        Bank-model norms divide by ``threshold`` instead, so that a fault-free residual stays
+        below one whatever its distribution.
     intense_factor : ``++`` when the residual exceeds this multiple of the threshold.
     filter_len : moving-average length [segments]; debounce_on/off : persistence [segments].
     storage_coeff : dynamic correction of eta_V for the air stored in the boost volume while
@@ -470,6 +472,13 @@ def _finish(fv: FeatureVector, r: np.ndarray, valid: bool, status: str,
 
 # ---------------------------------------------------------------------- bank models
 THRESHOLDS_FILE = "thresholds.json"
+# Segments over which bank models compute their norm (the nominal model and the fault
+# hypotheses must use the same window for their norms to be comparable).
+DEFAULT_WINDOW = 40
+# A hypothesis model must explain at least half a threshold (in block-RMS units) more than
+# the nominal model before its norm is the smaller one: its fitted size would otherwise
+# soak up the fault-free model errors.
+DEFAULT_PENALTY = 0.5
 
 
 def load_symptom_config(directory) -> SymptomConfig | None:
@@ -500,16 +509,17 @@ def block_rms(E: np.ndarray, block: int = 10) -> float:
 
 
 def _z(r: np.ndarray, cfg: SymptomConfig | None) -> np.ndarray:
-    """Residuals centred and divided by their fault-free scale (comparable across models)."""
+    """Residuals centred and divided by their symptom thresholds (comparable across models:
+    fault-free they stay within +-1 after filtering)."""
     if cfg is None:
         return np.full(r.shape, np.nan)
-    return (r - np.asarray(cfg.centre)) / np.asarray(cfg.scale)
+    return (r - np.asarray(cfg.centre)) / np.asarray(cfg.threshold)
 
 
 class ReferenceResidualModel:
     """The nominal bank model: parity residuals against the five reference models.
 
-    ``norm`` = RMS of the residuals centred and divided by their fault-free scale (from the
+    ``norm`` = RMS of the residuals centred and divided by their thresholds (from the
     symptom configuration); with ``window > 1`` the :func:`block_rms` over the last ``window``
     valid segments, so that it compares with the fault-hypothesis models' norms.
     """
@@ -552,12 +562,13 @@ class FaultHypothesisResidualModel:
     ``s = max(0, sum_k g_k . z_k / sum_k g_k . g_k)``, and the model's residual is
     ``z_k - s g_k``. A fault whose effect has the wrong shape across operating points cannot
     be explained by any ``s``: its norm stays large. ``norm`` is :func:`block_rms` of
-    ``z - s g`` over the window plus ``penalty`` (one parameter more than the nominal model).
+    ``z - s g`` over the window plus ``penalty`` (the price of one parameter more than the
+    nominal model; ``z`` are residuals in units of their symptom thresholds).
     """
 
     def __init__(self, *, models: ReferenceModelSet, config: SymptomConfig, fault: str,
                  directions: dict[str, object], model_id: str, window: int = 40,
-                 penalty: float = 0.05) -> None:
+                 penalty: float = DEFAULT_PENALTY) -> None:
         if config is None:
             raise ValueError("a fault-hypothesis model needs the fault-free residual scales")
         if int(window) < 1:
@@ -619,7 +630,7 @@ class FaultHypothesisResidualModel:
         s = max(0.0, float(np.sum(G * Z)) / den) if den > 0 else 0.0
         self.size_estimate = s
         norm = block_rms(Z - s * G) + self.penalty
-        values = rv.values - s * g * np.asarray(self.config.scale)
+        values = rv.values - s * g * np.asarray(self.config.threshold)
         return ResidualVector(**{**rv.__dict__, "values": values, "norm": norm})
 
     def stream(self, features: Sequence[FeatureVector]) -> list[ResidualVector]:
@@ -720,7 +731,7 @@ def _register() -> None:
         d = base_dir / spec.get("path", ".")
         return ReferenceResidualModel(models=ReferenceModelSet.load(d),
                                       config=load_symptom_config(d), model_id=model_id,
-                                      window=int(spec.get("window", 1)))
+                                      window=int(spec.get("window", DEFAULT_WINDOW)))
 
     @register_residual_model("diesel_fault_hypothesis")
     def _make_hypothesis(spec: dict, *, base_dir: Path,
@@ -737,8 +748,9 @@ def _register() -> None:
         fault, directions, meta = load_directions(base_dir / spec["hypothesis"])
         return FaultHypothesisResidualModel(
             models=ReferenceModelSet.load(d), config=cfg, fault=fault, directions=directions,
-            model_id=model_id, window=int(spec.get("window", meta.get("window", 40))),
-            penalty=float(spec.get("penalty", meta.get("penalty", 0.05))))
+            model_id=model_id,
+            window=int(spec.get("window", meta.get("window", DEFAULT_WINDOW))),
+            penalty=float(spec.get("penalty", meta.get("penalty", DEFAULT_PENALTY))))
 
 
 _register()

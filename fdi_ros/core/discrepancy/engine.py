@@ -271,9 +271,11 @@ def loss_differential_p(e_before: np.ndarray, e_after: np.ndarray) -> tuple[floa
         return 1.0, 0
     L = hac_bandwidth(e_after[ok])
     x = d - d.mean()
-    lrv = float(np.dot(x, x)) / n
-    for k in range(1, L + 1):
-        lrv += 2.0 * (1.0 - k / (L + 1)) * float(np.dot(x[k:], x[:-k])) / n
+    nfft = 1 << int(np.ceil(np.log2(2 * n)))
+    f = np.fft.rfft(x, nfft)
+    acov = np.fft.irfft(f * np.conj(f), nfft)[: L + 1] / n
+    k = np.arange(1, L + 1)
+    lrv = float(acov[0] + 2.0 * np.sum((1.0 - k / (L + 1)) * acov[1:]))
     if lrv <= 0.0:
         return (0.0 if d.mean() > 0 else 1.0), L
     tstat = d.mean() / np.sqrt(lrv / n)

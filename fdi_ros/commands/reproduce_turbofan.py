@@ -71,11 +71,14 @@ def run(args: argparse.Namespace) -> int:
 
     stale = False
     if model_path.exists() and not args.retrain:
-        gm = GlobalModel.load(model_path)
-        stale = gm.signature != plant_signature() or not gm.same_structure(settings.grid)
+        try:
+            gm = GlobalModel.load(model_path)
+            stale = gm.signature != plant_signature() or not gm.same_structure(settings.grid)
+            why = "trained on another plant version or grid"
+        except ValueError as exc:
+            stale, why = True, str(exc)
         if stale:
-            print(f"{model_path}: trained on another plant version or grid; training again",
-                  file=sys.stderr)
+            print(f"{model_path}: {why}; training again", file=sys.stderr)
     if args.retrain or stale or not model_path.exists():
         from fdi_ros.commands.train_turbofan import train
 

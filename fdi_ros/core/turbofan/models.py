@@ -135,6 +135,11 @@ def node_quality(node: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class TrainingReport:
+    """Training figures: node count, TS fits, wall time [s] (simulation part separately), worst
+    RMSE of the node fits [rpm/s], mean LM evaluations, and ``n_not_converged``: fits that
+    stopped at ``max_nfev`` before scipy's tolerances were met (their RMSE is still the one
+    reported; LM starts from the least-squares consequents, so most of the gain is early)."""
+
     n_nodes: int
     n_fits: int
     seconds: float
@@ -248,7 +253,7 @@ class GlobalModel:
                         xnl_range=tuple(meta["xnl_range"]), report=rep,
                         signature=str(meta.get("signature", "")),
                         widths=tuple(meta.get("widths", ())))
-        except (KeyError, ValueError, OSError) as exc:
+        except (KeyError, ValueError, TypeError, OSError) as exc:
             raise ValueError(f"{path}: not a turbofan global model file ({exc})") from exc
         if model.nodes.shape != (model.f1.centers.shape[0], 7):
             raise ValueError(f"{path}: inconsistent node arrays")

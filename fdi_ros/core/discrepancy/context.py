@@ -121,7 +121,7 @@ class ChannelContext:
     leak: LeakSpec | None = None
     t_ref: float = 0.0
     cache: dict = field(default_factory=dict, repr=False)
-    folds: np.ndarray | None = field(default=None, repr=False)  # (n_folds, N) train weights
+    folds: tuple | None = field(default=None, repr=False)  # left-out intervals (i0, i1, fold)
     fold_ids: dict = field(default_factory=dict, repr=False)    # id(train mask) -> fold
 
     @property

@@ -252,8 +252,8 @@ def _fit_1d(ctx: ChannelContext, base: np.ndarray, train: np.ndarray, transform,
     """Minimise the training SSE of ``transform(value)`` over [lo, hi].
 
     The grid is evaluated once per base prediction for all folds together: the engine puts
-    the folds' training masks on the context (``ctx.folds``), and the squared errors of each
-    grid value are summed per fold with one matrix-vector product. The minimum is located by a
+    the index intervals each fold leaves out on the context (``ctx.folds``), and a fold's
+    training SSE is the total minus those intervals, from one cumulative sum per grid value. The minimum is located by a
     parabola through the best grid point and its neighbours (in log space for ``log``);
     ``refine`` polishes it with Brent's method (the final fit on all samples).
     """
@@ -270,7 +270,15 @@ def _fit_1d(ctx: ChannelContext, base: np.ndarray, train: np.ndarray, transform,
     if k_fold is not None:
         cache = ctx.cache.get(key)
         if cache is None or cache["base"] is not base:  # one base per effect
-            table = np.array([folds @ sq_err(float(v)) for v in grid])  # (n_grid, n_folds)
+            # every fold trains on the valid samples minus a few index intervals: its SSE is
+            # the total minus those intervals' sums, read off one cumulative sum
+            i0, i1, owner = folds
+            okv = ctx.ok & valid
+            table = np.empty((n_grid, int(owner.max()) + 1))
+            for g, v in enumerate(grid):
+                cs = np.concatenate([[0.0], np.cumsum(np.where(okv, sq_err(float(v)), 0.0))])
+                table[g] = cs[-1] - np.bincount(owner, weights=cs[i1] - cs[i0],
+                                                minlength=table.shape[1])
             cache = ctx.cache[key] = {"base": base, "table": table}
         costs = cache["table"][:, k_fold]
     else:
@@ -426,19 +434,27 @@ class MissingHarmonic(Effect):
 
     def fit(self, ctx, base, train, *, refine=False):
         m = _train_mask(ctx, base, train, ctx.alpha)
-        r = ctx.y[m] - base[m]
-        best = (np.inf, self.orders[0], np.zeros(2))
-        for k in self.orders:
-            A = self._basis(ctx.alpha[m], k)
-            coef, *_ = np.linalg.lstsq(A, r, rcond=None)
-            e = r - A @ coef
-            sse = float(e @ e)
-            if sse < best[0]:
-                best = (sse, float(k), coef)
-        _, k, (a, b) = best
-        return {"order": k, "amplitude": float(math.hypot(a, b)),
-                "phase_deg": float(math.degrees(math.atan2(-b, a))), "a": float(a),
-                "b": float(b)}
+        key = ("harmonic basis", self.orders)
+        if key not in ctx.cache:  # the basis does not depend on the fold: build it once
+            alpha = np.where(np.isfinite(ctx.alpha), ctx.alpha, 0.0)
+            th = 2.0 * np.pi * np.outer(self.orders, alpha) / 180.0
+            C, S = np.cos(th), np.sin(th)
+            ctx.cache[key] = (C, S, C * C, S * S, C * S)
+        C, S, CC, SS, CS = ctx.cache[key]
+        w = m.astype(float)
+        r = np.where(m, ctx.y - base, 0.0)
+        # per order the 2x2 normal equations of r ~ a cos + b sin on the training samples
+        gc, gs = C @ r, S @ r
+        acc, ass, acs = CC @ w, SS @ w, CS @ w
+        det = acc * ass - acs * acs
+        ok = det > 1e-12 * np.maximum(acc * ass, 1e-300)
+        a = np.where(ok, (ass * gc - acs * gs) / np.where(ok, det, 1.0), 0.0)
+        b = np.where(ok, (acc * gs - acs * gc) / np.where(ok, det, 1.0), 0.0)
+        reduction = a * gc + b * gs  # SSE decrease of the least-squares fit
+        k = int(np.argmax(reduction))
+        a, b = float(a[k]), float(b[k])
+        return {"order": float(self.orders[k]), "amplitude": float(math.hypot(a, b)),
+                "phase_deg": float(math.degrees(math.atan2(-b, a))), "a": a, "b": b}
 
     def apply(self, ctx, base, params):
         A = self._basis(ctx.alpha, params["order"])

@@ -353,17 +353,33 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
         bounds = [(ctx.t[blk == b].min(), ctx.t[blk == b].max()) if np.any(blk == b)
                   else (np.nan, np.nan) for b in range(nb)]
         nf = min(cfg.n_folds or nb, nb)
-        trains, tests = [], []
+        trains, tests, cuts = [], [], []
         for k in range(nf):
             held = list(range(k, nb, nf))  # interleaved blocks: every fold spans the record
-            near = np.zeros(ctx.n, dtype=bool)
             for b in held:
                 lo, hi = bounds[b]
-                near |= (ctx.t >= lo - guard) & (ctx.t <= hi + guard)
-            trains.append(ok & ~near)
+                i0 = int(np.searchsorted(ctx.t, lo - guard, side="left"))
+                i1 = int(np.searchsorted(ctx.t, hi + guard, side="right"))
+                cuts.append((i0, i1, k))
+            mask = np.zeros(ctx.n, dtype=bool)
+            for i0, i1, kk in cuts:
+                if kk == k:
+                    mask[i0:i1] = True
+            trains.append(ok & ~mask)
             tests.append(np.isin(blk, held))
+        # merge overlapping left-out intervals per fold (guards of neighbouring blocks)
+        merged = []
+        for k in range(nf):
+            iv = sorted((a, b) for a, b, kk in cuts if kk == k)
+            for a, b in iv:
+                if merged and merged[-1][2] == k and a <= merged[-1][1]:
+                    merged[-1] = (merged[-1][0], max(b, merged[-1][1]), k)
+                else:
+                    merged.append((a, b, k))
+        cuts = merged
         # the folds, for effects that evaluate a parameter grid for all folds at once
-        ctx.folds = np.array(trains, dtype=float)
+        ctx.folds = (np.array([c[0] for c in cuts]), np.array([c[1] for c in cuts]),
+                     np.array([c[2] for c in cuts]))
         ctx.fold_ids = {id(tr): k for k, tr in enumerate(trains)}
         resid0 = ctx.y - ctx.yhat
         info["rmse_baseline"] = float(np.sqrt(np.mean(resid0[ok] ** 2)))

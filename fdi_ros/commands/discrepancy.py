@@ -52,6 +52,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="family-wise significance level")
     parser.add_argument("--min-gain", type=float, default=2.0,
                         help="smallest held-out gain [%%] reported as a finding")
+    parser.add_argument("--crank-step", type=float, default=20.0,
+                        help="analyse crank-resolved data at this crank-angle spacing [deg CA] "
+                             "(every k-th sample; 0 keeps all)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
@@ -122,6 +125,10 @@ def run(args: argparse.Namespace) -> int:
         except ValueError:
             raise ValueError(f"--window must be T0:T1 in seconds, got {args.window!r}") from None
         data = data.window(t0, t1)
+    if args.crank_step and data.alpha is not None:
+        from fdi_ros.core.measured import decimate_crank
+
+        data = decimate_crank(data, args.crank_step)
     effects = CATALOGUE if not args.effects else tuple(e.strip() for e in
                                                        args.effects.split(","))
     cfg = DiscrepancyConfig(alpha=args.alpha, min_gain_pct=args.min_gain, effects=effects)

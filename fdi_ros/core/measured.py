@@ -383,3 +383,19 @@ def segment_means(data: Measured, *, segment_deg: float = 180.0) -> Measured:
                    source=f"{data.source} (180 deg CA segment means)", mapped=data.mapped)
     object.__setattr__(out, "segment_alpha", alpha0)
     return out
+
+
+def decimate_crank(data: Measured, step_deg: float) -> Measured:
+    """Every k-th sample so that the crank-angle spacing is about ``step_deg`` (no filter: the
+    pulsation orders of interest stay well below the new Nyquist order ``90 / step_deg``)."""
+    if data.alpha is None:
+        return data
+    da = float(np.median(np.diff(data.alpha)))
+    k = int(step_deg // da) if da > 0 else 1
+    if k <= 1:
+        return data
+    sel = slice(0, None, k)
+    return Measured(t=data.t[sel], signals={n: v[sel] for n, v in data.signals.items()},
+                    units=dict(data.units), alpha=data.alpha[sel], segment=data.segment[sel],
+                    source=f"{data.source} (every {k}th sample, {k * da:g} deg CA)",
+                    mapped=data.mapped)

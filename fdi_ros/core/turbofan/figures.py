@@ -12,8 +12,9 @@ STYLES = ["-", ":", "-.", "--", ":", "-.", "--"]
 
 
 def case_figure(res: ScenarioResult, path: str | Path, *, xnh_weight: float = 0.0) -> Path:
-    """Four panels: XN2 (plant and the initially on-line models), residual norms of those
-    models, the minimum-residual index I*(k), the fault index F*(k) (bank numbering 0-15)."""
+    """Four panels: XN2 (plant and the models on line at start or end), residual norms of the
+    models while on line, the minimum-residual index I*(k), the fault index F*(k) (bank
+    numbering 0-15)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -22,15 +23,16 @@ def case_figure(res: ScenarioResult, path: str | Path, *, xnh_weight: float = 0.
     t = res.t
     ids = list(res.model_ids)
     shown = sorted({ids.index(m) for online in (res.online[0], res.online[-1]) for m in online})
-    fig, ax = plt.subplots(4, 1, figsize=(8, 10), sharex=True)
+    fig, ax = plt.subplots(4, 1, figsize=(10.5, 10), sharex=True, layout="constrained")
     ax[0].plot(t, res.y[:, 0], "k", lw=2.2, label="engine XN2")
     cmap = plt.get_cmap("tab20")
     for j, i in enumerate(shown):
         kw = dict(color=cmap(i % 20), ls=STYLES[j % len(STYLES)], lw=1.0 if i < 4 else 1.6)
         ax[0].plot(t, res.yhat[i], label=f"{i}: {ids[i]}", **kw)
-        ax[1].plot(t, res.norms[i], **kw)
+        on = np.array([ids[i] in online for online in res.online])
+        ax[1].plot(t, np.where(on, res.norms[i], np.nan), **kw)  # only while on line
     ax[0].set_ylabel("XN2 [rpm]")
-    ax[0].legend(fontsize=6, ncol=3, loc="lower left")
+    ax[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.02))
     lo, hi = np.percentile(res.y[:, 0], [0, 100])
     ax[0].set_ylim(lo - 120, hi + 40)
     ax[1].set_ylabel("residual norm [rpm]" if xnh_weight else "|residual| [rpm]")
@@ -52,7 +54,6 @@ def case_figure(res: ScenarioResult, path: str | Path, *, xnh_weight: float = 0.
                            xytext=(4, 4), textcoords="offset points")
     ax[3].set_xlabel("time [s]")
     ax[0].set_title(f"turbofan case {res.scenario.name}")
-    fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -36,6 +36,9 @@ def _missing(cfg: GraphConfig) -> list[tuple[str, dict]]:
         elif spec.get("type") == "diesel_fault_hypothesis":
             if not (Path(spec["hypothesis"]) / "hypothesis.json").exists():
                 out.append((e.id, spec))
+        elif spec.get("type") == "turbofan_ts":
+            if not Path(spec["path"]).exists():
+                out.append((e.id, spec))
     return out
 
 
@@ -46,9 +49,20 @@ def ensure_bank(config: str | Path | GraphConfig, *, progress: bool = True, seed
     todo = _missing(cfg)
     if not todo:
         return []
+    if cfg.plant == "turbofan":
+        # one global TS model serves every bank model (it interpolates over the fault sizes)
+        from fdi_ros.commands.train_turbofan import train
+        from fdi_ros.core.turbofan.settings import load_settings
+
+        t0 = time.perf_counter()
+        log(f"[bank] training the turbofan's Takagi-Sugeno node models "
+            f"(for {', '.join(m for m, _ in todo)})")
+        train(load_settings(cfg.path), progress=progress)
+        log(f"[bank] turbofan models: {time.perf_counter() - t0:.1f} s")
+        return [m for m, _ in todo]
     if cfg.plant != "diesel":
-        raise ValueError(f"models missing for {[m for m, _ in todo]}: build them with the "
-                         f"{cfg.plant} training command first")
+        raise ValueError(f"models missing for {[m for m, _ in todo]}: no builder for plant "
+                         f"{cfg.plant!r}")
     from fdi_ros.commands.identify import (DEFAULT_DRIVE, DEFAULT_IDENT, build_models,
                                            simulate_features)
     from fdi_ros.core.diesel.plant import FAULT_UNITS

@@ -76,11 +76,22 @@ def summarise(steps: list, plant_seconds: float, wall_seconds: float, truth: lis
                     first_symptom[name] = round(d.t, 4)
     final = steps[-1][2].diagnosis if steps else None
     onset = min((e.t for e in truth if e.active and e.fault), default=math.nan)
+    # Detection episodes: a detection either ends in an isolation (confirmed), is still open
+    # at the end, or falls back to "no fault" (cleared: a transient the hold time T0 rejected).
+    episodes: list[dict] = []
+    for fv, _res, step in steps:
+        st = step.diagnosis.state
+        if st == "detected" and (not episodes or episodes[-1]["end"] is not None):
+            episodes.append({"t": round(fv.t_end, 4), "end": None})
+        elif episodes and episodes[-1]["end"] is None and st in ("isolated", "no_fault"):
+            episodes[-1]["end"] = "isolated" if st == "isolated" else "cleared"
+    kept = [e for e in episodes if e["end"] != "cleared"]
+    det = kept[0]["t"] if kept else (final.detection_time if final and final.state == "isolated"
+                                      else math.nan)
 
     def delay(t: float) -> float | None:
         return None if math.isnan(t) or math.isnan(onset) else round(t - onset, 4)
 
-    det = final.detection_time if final else math.nan
     iso = final.isolation_time if final else math.nan
     return {
         "segments": len(steps),
@@ -89,8 +100,9 @@ def summarise(steps: list, plant_seconds: float, wall_seconds: float, truth: lis
         "realtime_factor": round(plant_seconds / wall_seconds, 1) if wall_seconds > 0 else None,
         "fault_truth": [{"t": e.t, "fault": e.fault, "size": e.size, "unit": e.size_unit}
                         for e in truth],
-        "detected": bool(final and not math.isnan(det)),
-        "detection_time_s": None if not final or math.isnan(det) else round(det, 4),
+        "detected": not math.isnan(det),
+        "cleared_detections_s": [e["t"] for e in episodes if e["end"] == "cleared"],
+        "detection_time_s": None if math.isnan(det) else round(det, 4),
         "detection_delay_s": delay(det),
         "isolated_faults": list(final.isolated_faults) if final else [],
         "fault_model": final.fault_model if final else "",

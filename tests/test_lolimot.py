@@ -128,3 +128,19 @@ def test_in_region_marks_the_empty_corner():
     model.fit(X, X[:, 0] + X[:, 1])
     inside = model.in_region(np.array([[0.7, 0.7], [0.2, 0.2], [0.1, 0.9], [1.5, 0.5]]))
     assert inside.tolist() == [True, True, False, False]
+
+
+def test_pooled_fit_matches_the_plain_fit_on_repetitive_data():
+    # Quasi-stationary data: many repeats of a few hundred operating points.
+    rng = np.random.default_rng(6)
+    ops = rng.uniform(0, 1, (300, 2))
+    X = ops[rng.integers(0, 300, 6000)] + rng.normal(0, 1e-3, (6000, 2))
+    f = lambda X: np.sin(3 * X[:, 0]) * np.exp(X[:, 1])  # noqa: E731
+    y = f(X) + 0.01 * rng.standard_normal(6000)
+    plain = Lolimot(max_models=8)
+    pooled = Lolimot(max_models=8, compress_bins=64)
+    r1, r2 = plain.fit(X, y), pooled.fit(X, y)
+    assert r1.n_models == r2.n_models
+    Xt = rng.uniform(0, 1, (500, 2))
+    np.testing.assert_allclose(pooled.predict(Xt), plain.predict(Xt), atol=0.02)
+    assert abs(r1.train_rmse - r2.train_rmse) < 0.1 * r1.train_rmse + 1e-3

@@ -148,3 +148,10 @@ def test_quasi_stationarity_gate_and_storage_correction():
     # A segment flagged invalid by the front end restarts the history.
     assert not qs.apply(_fv(300, 5.0, 2200.0, 1.6e5, 20.0, valid=False), r0, False, "x")[1]
     assert not qs.apply(_fv(301, 5.015, 2200.0, 1.6e5, 20.0), r0, True, "")[1]
+
+
+def test_isolation_distance_weighs_opposite_signs_double():
+    table = {"vent": (2, -1, 0, 0, 0), "leak": (-1, 0, 0, 0, 0)}
+    # (-,-): vent has s_eta of opposite sign (2), leak misses s_Am (1) -> leak.
+    assert isolate((-1, -1, 0, 0, 0), table, max_mismatch=1) == ["leak"]
+    assert isolate((-1, -1, 0, 0, 0), table, max_mismatch=0) == []

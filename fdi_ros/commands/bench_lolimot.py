@@ -54,16 +54,27 @@ def run(args: argparse.Namespace) -> int:
 
     if args.repeat < 1:
         raise ValueError("--repeat must be >= 1")
-    data = feature_table(load_features(args.data, seed=args.seed, mapping=args.mapping))
+    feats = load_features(args.data, seed=args.seed, mapping=args.mapping)
+    with_p2 = bool(feats) and "p2" in feats[0].names
+    data = feature_table(feats, names=INPUTS + OUTPUTS + (("p2",) if with_p2 else ()))
     cfg = IdentificationConfig(seed=args.seed)
+    targets = {k: data[k] for k in OUTPUTS}
+    if with_p2:
+        # The target the reference model really learns: eta_V without the air stored in the
+        # boost volume during transients (coefficient from the identification's own split).
+        from fdi_ros.core.diesel.reference import identify_reference_models, storage_regressor
+
+        c = identify_reference_models(data, config=cfg).models.info["storage_coeff"]
+        xs = storage_regressor(data["t"], data["n"], data["p2"], cfg.rate_lag)
+        targets["eta_v_storage_corrected"] = data["eta_v"] - c * np.nan_to_num(xs)
     X = np.column_stack([data[k] for k in INPUTS])
     tr, va, te = split_blocks(X.shape[0], block=cfg.block, seed=cfg.seed)
     trva = np.concatenate([tr, va])
     report = {"data": args.data, "n_train": int(tr.size), "n_val": int(va.size),
               "n_test": int(te.size), "peer": type(_peer(args.peer, 0)).__name__,
+              "lolimot": {"max_models": cfg.max_models, "compress_bins": cfg.compress_bins},
               "models": {}}
-    for k in OUTPUTS:
-        y = data[k]
+    for k, y in targets.items():
         if k in PHASES:
             y = wrap_phase(y, circular_mean(y[tr]))
         t_lol, t_peer = [], []

@@ -114,13 +114,14 @@ class IdentificationConfig:
         identified range.
     """
 
-    max_models: int = 14
+    max_models: int = 20
     k_sigma: float = 0.35
     ridge: float = 1e-6
     min_samples_per_model: int = 40
     patience: int = 4
     coverage_bins: int = 16
     coverage_min_count: int = 3
+    compress_bins: int = 64
     block: int = 200
     seed: int = 0
     lut_n: tuple[float, ...] = ()
@@ -140,7 +141,8 @@ class IdentificationConfig:
         return Lolimot(max_models=self.max_models, k_sigma=self.k_sigma, ridge=self.ridge,
                        min_samples_per_model=self.min_samples_per_model,
                        patience=self.patience, coverage_bins=self.coverage_bins,
-                       coverage_min_count=self.coverage_min_count)
+                       coverage_min_count=self.coverage_min_count,
+                       compress_bins=self.compress_bins)
 
 
 @dataclass
@@ -295,15 +297,36 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
     for k in outputs:
         y = np.asarray(data[k], dtype=float)[finite]
         if k == "eta_v" and xs is not None:
-            # Static map and storage coefficient by alternating least squares (2 rounds):
-            # the boost transients of the cycle would otherwise smear the static map.
+            # eta_V = f(n, rho2) + c x: c by partialling out (Frisch-Waugh / Robinson's
+            # double residual): the parts of x and of eta_V that the static map of
+            # (n, rho2) explains are removed first (LOLIMOT fits of each), then c is the
+            # least-squares slope between the remainders. Alternating fits of f and c
+            # converge slowly because the cycle's boost ramps correlate with (n, rho2).
             ok = np.isfinite(xs)
-            for _ in range(2):
+            x0 = np.nan_to_num(xs)
+            sel = tr[ok[tr]]
+            mx, my = cfg.lolimot(), cfg.lolimot()
+            mx.fit(X[sel], x0[sel])
+            my.fit(X[sel], y[sel])
+            rx = x0[sel] - mx.predict(X[sel])
+            ry = y[sel] - my.predict(X[sel])
+            c0 = float(rx @ ry / (rx @ rx)) if float(rx @ rx) > 0 else 0.0
+            # The remainders still share some structure, so refine c on the validation
+            # blocks: the c whose static map predicts held-out eta_V best.
+            from scipy.optimize import minimize_scalar
+
+            sv = va[ok[va]]
+
+            def val_rmse(c):
                 m = cfg.lolimot()
-                m.fit(X[tr], (y - storage * np.nan_to_num(xs))[tr])
-                e = y - m.predict(X)
-                storage = float(np.sum(xs[ok] * e[ok]) / np.sum(xs[ok] ** 2))
-            y = y - storage * np.nan_to_num(xs)
+                m.fit(X[sel], y[sel] - c * x0[sel])
+                return float(np.sqrt(np.mean((y[sv] - c * x0[sv] - m.predict(X[sv])) ** 2)))
+
+            hi = 3.0 * abs(c0) + 1e-12
+            opt = minimize_scalar(val_rmse, bounds=(-hi, hi), method="bounded",
+                                  options={"xatol": 0.01 * hi, "maxiter": 20})
+            storage = float(opt.x) if opt.fun < val_rmse(c0) else c0
+            y = y - storage * x0
         c = circular_mean(y[tr]) if k in PHASES else None
         if c is not None:
             centres[k] = c

@@ -289,8 +289,9 @@ def isolate(symptom_levels: Sequence[int] | Mapping[str, int],
 
     ``symptom_levels`` in :data:`SYMPTOMS` order (or a mapping by symptom name). Exact matches
     first; if there is none, faults whose signature matches in sign (``+`` == ``++``); if
-    there is none and ``max_mismatch > 0``, the faults with the fewest symptoms of different
-    sign, up to ``max_mismatch`` of them. No symptom at all -> no candidate.
+    there is none and ``max_mismatch > 0``, the faults at the smallest distance, if it is at
+    most ``max_mismatch`` (distance: sum over symptoms of |sign(table) - sign(observed)|, so a
+    symptom missing or extra counts 1, one of opposite sign 2). No symptom -> no candidate.
     """
     if isinstance(symptom_levels, Mapping):
         obs = np.array([int(symptom_levels.get(s, 0)) for s in SYMPTOMS])
@@ -307,7 +308,8 @@ def isolate(symptom_levels: Sequence[int] | Mapping[str, int],
             exact.append(fault)
         elif np.array_equal(np.sign(sig), np.sign(obs)):
             signed.append(fault)
-        dist[fault] = int(np.sum(np.sign(sig) != np.sign(obs)))
+        # A symptom of opposite sign weighs 2, a missing or extra one 1.
+        dist[fault] = int(np.sum(np.abs(np.sign(sig) - np.sign(obs))))
     if exact or signed or max_mismatch <= 0:
         return exact or signed
     best = min(dist.values())

@@ -23,6 +23,34 @@ DIESEL_HYPOTHESIS_SIZES = {"crankcase_vent_open": 10.0, "leak_ic_engine": 5.0,
 HYPOTHESIS_WINDOW = 40  # segments over which a hypothesis estimates its fault size (0.6 s)
 
 
+BUILD_INFO = "build_info.json"
+
+
+def reference_fingerprint(ref_dir: str | Path) -> str:
+    """Hash of the reference model set and thresholds a hypothesis model was built against:
+    a hypothesis is stale (and rebuilt) when the reference models change under it."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for name in ("reference_models.json", "thresholds.json"):
+        f = Path(ref_dir) / name
+        h.update(f.read_bytes() if f.exists() else b"-")
+    return h.hexdigest()[:16]
+
+
+def _hypothesis_current(spec: dict) -> bool:
+    import json
+
+    d = Path(spec["hypothesis"])
+    if not (d / "hypothesis.json").exists() or not (d / BUILD_INFO).exists():
+        return False
+    try:
+        info = json.loads((d / BUILD_INFO).read_text())
+    except ValueError:
+        return False
+    return info.get("reference") == reference_fingerprint(spec["path"])
+
+
 def _missing(cfg: GraphConfig) -> list[tuple[str, dict]]:
     out = []
     for e in cfg.bank:
@@ -34,7 +62,7 @@ def _missing(cfg: GraphConfig) -> list[tuple[str, dict]]:
             if not (d / "reference_models.json").exists() or not (d / "thresholds.json").exists():
                 out.append((e.id, spec))
         elif spec.get("type") == "diesel_fault_hypothesis":
-            if not (Path(spec["hypothesis"]) / "hypothesis.json").exists():
+            if not _hypothesis_current(spec):
                 out.append((e.id, spec))
         elif spec.get("type") == "turbofan_ts":
             if not Path(spec["path"]).exists():
@@ -94,6 +122,11 @@ def ensure_bank(config: str | Path | GraphConfig, *, progress: bool = True, seed
         hyp = identify_fault_hypothesis(mset, scfg, feats, fault=fault, size=size, t_from=6.0,
                                         model_id=mid, window=HYPOTHESIS_WINDOW)
         hyp.save(spec["hypothesis"])
+        import json
+
+        (Path(spec["hypothesis"]) / BUILD_INFO).write_text(json.dumps(
+            {"reference": reference_fingerprint(spec["path"]), "fault": fault, "size": size,
+             "seed": seed + 500 + i, "window": HYPOTHESIS_WINDOW}))
         built.append(mid)
         log(f"[bank] {mid}: {time.perf_counter() - t0:.1f} s")
     return built

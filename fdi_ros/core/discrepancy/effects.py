@@ -155,6 +155,64 @@ def _fit_scalar(r: np.ndarray, g: np.ndarray, t: np.ndarray, m: np.ndarray, *, o
     return float(beta), (None if k == 0 else float(t[idx[k]]))
 
 
+def _fit_piecewise(r: np.ndarray, g: np.ndarray, t: np.ndarray, m: np.ndarray, *,
+                   nonneg: bool, max_changes: int = 8, min_gain: float = 0.01
+                   ) -> tuple[list[float], list[float]]:
+    """Least-squares ``r ~ beta(t) * g`` with ``beta`` piecewise constant in time.
+
+    Binary segmentation: split the segment whose best split lowers the training SSE most, as
+    long as the decrease exceeds ``min_gain`` of the total sum of squares (the held-out test
+    judges the result); at most ``max_changes`` change times. Returns (change times [s],
+    beta per piece).
+    """
+    idx = np.flatnonzero(m)
+    n = idx.size
+    if n < 40:
+        return [], [0.0]
+    rg, gg = r[idx] * g[idx], g[idx] ** 2
+    crg = np.concatenate([[0.0], np.cumsum(rg)])
+    cgg = np.concatenate([[0.0], np.cumsum(gg)])
+    total = float(np.dot(r[idx], r[idx])) or 1.0
+    min_len = max(20, n // 100)
+
+    def red(s_rg, s_gg):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            v = np.where(s_gg > 0, s_rg ** 2 / s_gg, 0.0)
+        return np.where(s_rg > 0, v, 0.0) if nonneg else v
+
+    cuts = [0, n]
+    for _ in range(max_changes):
+        best = (0.0, None)
+        for a, b in zip(cuts[:-1], cuts[1:]):
+            if b - a < 2 * min_len:
+                continue
+            k = np.arange(a + min_len, b - min_len + 1)
+            gain = (red(crg[k] - crg[a], cgg[k] - cgg[a]) + red(crg[b] - crg[k], cgg[b] - cgg[k])
+                    - red(crg[b] - crg[a], cgg[b] - cgg[a]))
+            j = int(np.argmax(gain))
+            if gain[j] > best[0]:
+                best = (float(gain[j]), int(k[j]))
+        if best[1] is None or best[0] < min_gain * total:
+            break
+        cuts = sorted(cuts + [best[1]])
+    betas = []
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        s_gg = cgg[b] - cgg[a]
+        beta = (crg[b] - crg[a]) / s_gg if s_gg > 0 else 0.0
+        betas.append(max(beta, 0.0) if nonneg else float(beta))
+    return [float(t[idx[c]]) for c in cuts[1:-1]], betas
+
+
+def _piecewise_beta(t: np.ndarray, params: dict) -> np.ndarray:
+    return np.asarray(params["values"])[np.searchsorted(params["changes_s"], t, side="right")]
+
+
+def _label(name: str, eff) -> str:
+    if getattr(eff, "piecewise", False):
+        return f"{name} (piecewise in time)"
+    return f"{name} after onset" if getattr(eff, "onset", False) else name
+
+
 def _step(t: np.ndarray, onset: float | None) -> np.ndarray:
     return np.ones_like(t) if onset is None else (t >= onset).astype(float)
 
@@ -190,45 +248,59 @@ class Effect:
 @dataclass(frozen=True)
 class Offset(Effect):
     onset: bool = False
+    piecewise: bool = False
     id = "offset"
 
     @property
     def label(self) -> str:
-        return "offset after onset" if self.onset else "offset"
+        return _label("offset", self)
 
     @property
     def n_params(self) -> int:
-        return 2 if self.onset else 1
+        return 4 if self.piecewise else 2 if self.onset else 1
 
     def fit(self, ctx, base, train, *, refine=False):
         m = _train_mask(ctx, base, train)
+        if self.piecewise:
+            ch, vals = _fit_piecewise(ctx.y - base, np.ones_like(base), ctx.t, m, nonneg=False)
+            k = int(np.argmax(np.abs(vals)))
+            return {"offset": vals[k], "changes_s": ch, "values": vals}
         b, t_on = _fit_scalar(ctx.y - base, np.ones_like(base), ctx.t, m, onset=self.onset,
                               nonneg=False)
         return {"offset": b, "onset_s": t_on}
 
     def apply(self, ctx, base, params):
+        if "changes_s" in params:
+            return base + _piecewise_beta(ctx.t, params)
         return base + params["offset"] * _step(ctx.t, params.get("onset_s"))
 
 
 @dataclass(frozen=True)
 class GainError(Effect):
     onset: bool = False
+    piecewise: bool = False
     id = "gain_error"
 
     @property
     def label(self) -> str:
-        return "gain error after onset" if self.onset else "gain error"
+        return _label("gain error", self)
 
     @property
     def n_params(self) -> int:
-        return 2 if self.onset else 1
+        return 4 if self.piecewise else 2 if self.onset else 1
 
     def fit(self, ctx, base, train, *, refine=False):
         m = _train_mask(ctx, base, train)
+        if self.piecewise:
+            ch, vals = _fit_piecewise(ctx.y - base, base, ctx.t, m, nonneg=False)
+            k = int(np.argmax(np.abs(vals)))
+            return {"gain": 1.0 + vals[k], "changes_s": ch, "values": vals}
         b, t_on = _fit_scalar(ctx.y - base, base, ctx.t, m, onset=self.onset, nonneg=False)
         return {"gain": 1.0 + b, "onset_s": t_on}
 
     def apply(self, ctx, base, params):
+        if "changes_s" in params:
+            return base * (1.0 + _piecewise_beta(ctx.t, params))
         return base * (1.0 + (params["gain"] - 1.0) * _step(ctx.t, params.get("onset_s")))
 
 
@@ -394,27 +466,39 @@ class InputDependence(Effect):
 @dataclass(frozen=True)
 class Leak(Effect):
     onset: bool = False
+    piecewise: bool = False
     id = "leak"
 
     @property
     def label(self) -> str:
-        return "leak after onset" if self.onset else "leak"
+        return _label("leak", self)
 
     @property
     def n_params(self) -> int:
-        return 2 if self.onset else 1
+        return 4 if self.piecewise else 2 if self.onset else 1
 
     def fit(self, ctx, base, train, *, refine=False):
         q = ctx.leak_q
         m = _train_mask(ctx, base, train, q)
-        cda, t_on = _fit_scalar(ctx.y - base, -q, ctx.t, m, onset=self.onset, nonneg=True)
         cd = ctx.leak.cd
+        if self.piecewise:
+            ch, vals = _fit_piecewise(ctx.y - base, -q, ctx.t, m, nonneg=True)
+            cda = max(vals)
+            areas = [v / cd * 1e6 for v in vals]
+            return {"cda_mm2": cda * 1e6, "area_mm2": cda / cd * 1e6, "cd": cd,
+                    "diameter_mm": math.sqrt(4.0 * cda / cd * 1e6 / math.pi),
+                    "changes_s": ch, "values": vals,
+                    "diameters_mm": [math.sqrt(4.0 * a / math.pi) for a in areas]}
+        cda, t_on = _fit_scalar(ctx.y - base, -q, ctx.t, m, onset=self.onset, nonneg=True)
         area = cda / cd * 1e6
         return {"cda_mm2": cda * 1e6, "area_mm2": area, "cd": cd,
                 "diameter_mm": math.sqrt(4.0 * area / math.pi), "onset_s": t_on}
 
     def apply(self, ctx, base, params):
-        corr = params["cda_mm2"] * 1e-6 * ctx.leak_q * _step(ctx.t, params.get("onset_s"))
+        if "changes_s" in params:
+            corr = _piecewise_beta(ctx.t, params) * ctx.leak_q
+        else:
+            corr = params["cda_mm2"] * 1e-6 * ctx.leak_q * _step(ctx.t, params.get("onset_s"))
         return base - np.where(np.isfinite(corr), corr, 0.0)
 
 
@@ -593,9 +677,10 @@ def candidates(ctx: ChannelContext, *, effects: tuple[str, ...] = CATALOGUE,
     out: list[Effect] = []
     for e in effects:
         if e == "offset":
-            out += [Offset()] + ([Offset(onset=True)] if onset else [])
+            out += [Offset()] + ([Offset(onset=True), Offset(piecewise=True)] if onset else [])
         elif e == "gain_error":
-            out += [GainError()] + ([GainError(onset=True)] if onset else [])
+            out += [GainError()] + ([GainError(onset=True), GainError(piecewise=True)]
+                                    if onset else [])
         elif e == "drift":
             out.append(Drift())
         elif e == "sensor_lag":
@@ -606,7 +691,7 @@ def candidates(ctx: ChannelContext, *, effects: tuple[str, ...] = CATALOGUE,
             out += [InputDependence(column=c, degree=1 if c.startswith("d/dt ") else 2)
                     for c in ctx.columns]
         elif e == "leak" and ctx.leak_q is not None:
-            out += [Leak()] + ([Leak(onset=True)] if onset else [])
+            out += [Leak()] + ([Leak(onset=True), Leak(piecewise=True)] if onset else [])
         elif e == "missing_harmonic" and ctx.alpha is not None:
             # orders the crank-angle sampling resolves (below 0.45 of the Nyquist order)
             da = float(np.median(np.diff(ctx.alpha)))

@@ -284,9 +284,14 @@ def loss_differential_p(e_before: np.ndarray, e_after: np.ndarray) -> tuple[floa
 
 
 def _nests(big: Effect, small: Effect) -> bool:
-    """True when ``small`` is a special case of ``big`` (the same effect without an onset)."""
-    return (big.id == small.id and getattr(big, "onset", False)
-            and not getattr(small, "onset", True))
+    """True when ``small`` is a special case of ``big`` (the same effect with fewer change
+    times: always on < after an onset < piecewise constant in time)."""
+    if big.id != small.id:
+        return False
+    if getattr(big, "piecewise", False):
+        return not getattr(small, "piecewise", True)
+    return getattr(big, "onset", False) and not getattr(small, "onset", True) and not getattr(
+        small, "piecewise", True)
 
 
 def _one_se_choice(scored: list[tuple[Effect, Candidate]], alpha: float
@@ -297,6 +302,7 @@ def _one_se_choice(scored: list[tuple[Effect, Candidate]], alpha: float
     switching on at some time); effects with different physics compete on held-out error.
     """
     best = min(scored, key=lambda ec: np.nanmean(ec[1].mse_blocks))
+    eligible = [best]
     for eff, c in scored:
         if not _nests(best[0], eff) or c.p_adjusted >= alpha:
             continue
@@ -304,8 +310,24 @@ def _one_se_choice(scored: list[tuple[Effect, Candidate]], alpha: float
         d = d[np.isfinite(d)]
         tol = 1e-3 * float(np.nanmean(best[1].mse_blocks))
         if d.size >= 3 and d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size) + tol:
-            return eff, c
-    return best
+            eligible.append((eff, c))
+    return min(eligible, key=lambda ec: (ec[0].n_params, np.nanmean(ec[1].mse_blocks)))
+
+
+def _verdict(findings: list[Finding], table: list[Candidate]) -> tuple[str, str]:
+    """Verdict and one-line message from the findings and the candidate table."""
+    if findings:
+        top = findings[0]
+        return "discrepant", (f"{len(findings)} significant finding(s); top: {top.label} on "
+                              f"{top.channel} (held-out RMSE -{top.gain_pct:.1f}%)")
+    msg = ("no extension improves the held-out error significantly: the model is consistent "
+           "with the data")
+    if table and table[0].gain_pct >= 10.0:
+        c = table[0]
+        msg += (f" (the best candidate, {c.label} on {c.channel}, gains {c.gain_pct:.0f} % "
+                f"but not consistently over the held-out blocks, p_adj {c.p_adjusted:.2g}: "
+                f"an effect outside the catalogue, e.g. intermittent, is possible)")
+    return "consistent", msg
 
 
 def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | None = None,
@@ -479,15 +501,7 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
     findings.sort(key=lambda f: -f.gain_pct)
     findings = [Finding(**{**f.__dict__, "rank": i + 1}) for i, f in enumerate(findings)]
     table.sort(key=lambda c: -c.gain_pct)
-    if findings:
-        verdict = "discrepant"
-        top = findings[0]
-        msg = (f"{len(findings)} significant finding(s); top: {top.label} on {top.channel} "
-               f"(held-out RMSE -{top.gain_pct:.1f}%)")
-    else:
-        verdict = "consistent"
-        msg = ("no extension improves the held-out error significantly: the model is "
-               "consistent with the data")
+    verdict, msg = _verdict(findings, table)
     return DiscrepancyResult(findings=findings, candidates=table, verdict=verdict, message=msg,
                              success=True, channels=summary, chains=chains,
                              n_blocks=max([c.get("n_blocks", 0) for c in summary.values()]
@@ -512,13 +526,7 @@ def merge_results(a: DiscrepancyResult, b: DiscrepancyResult, *, b_suffix: str,
     else:
         channels.update({f"{ch} (crank-resolved)": v for ch, v in a.channels.items()})
     cands = sorted(a.candidates + b.candidates, key=lambda c: -c.gain_pct)
-    if findings:
-        top = findings[0]
-        verdict = "discrepant"
-        msg = (f"{len(findings)} significant finding(s); top: {top.label} on {top.channel} "
-               f"(held-out RMSE -{top.gain_pct:.1f}%)")
-    else:
-        verdict, msg = a.verdict, a.message
+    verdict, msg = _verdict(findings, cands)
     return DiscrepancyResult(findings=findings, candidates=cands, verdict=verdict, message=msg,
                              success=a.success and b.success, channels=channels,
                              chains=chains, n_blocks=max(a.n_blocks, b.n_blocks),

@@ -144,3 +144,13 @@ def test_pooled_fit_matches_the_plain_fit_on_repetitive_data():
     Xt = rng.uniform(0, 1, (500, 2))
     np.testing.assert_allclose(pooled.predict(Xt), plain.predict(Xt), atol=0.02)
     assert abs(r1.train_rmse - r2.train_rmse) < 0.1 * r1.train_rmse + 1e-3
+
+
+def test_coverage_closing_fills_holes_but_keeps_the_outline():
+    from fdi_ros.core.lolimot import _closing
+
+    g = np.ones((6, 6), bool)
+    g[:3, 3:] = False        # the empty corner (3 x 3 bins)
+    g[4, 2] = False          # a one-bin hole between sweeps
+    c = _closing(g)
+    assert c[4, 2] and not c[:2, 4:].any() and c[:3, 3:].sum() <= 1

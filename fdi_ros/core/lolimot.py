@@ -76,6 +76,26 @@ def _as_2d(X, n_inputs: int | None = None) -> np.ndarray:
     return X
 
 
+def _shifted(grid: np.ndarray, fill: bool) -> list[np.ndarray]:
+    """The grid shifted by one bin along every axis and both directions (edges filled)."""
+    out = []
+    for ax in range(grid.ndim):
+        for step in (1, -1):
+            g = np.roll(grid, step, axis=ax)
+            edge = [slice(None)] * grid.ndim
+            edge[ax] = 0 if step == 1 else -1
+            g[tuple(edge)] = fill
+            out.append(g)
+    return out
+
+
+def _closing(grid: np.ndarray) -> np.ndarray:
+    """Morphological closing (dilate, then erode) with the axis neighbours: fills one-bin
+    holes between the sweeps of an identification cycle without growing its outline."""
+    dil = grid | np.logical_or.reduce(_shifted(grid, False))
+    return dil & np.logical_and.reduce(_shifted(dil, True)) | grid
+
+
 class Lolimot:
     """Local linear model tree (LOLIMOT) regressor for static maps ``R^p -> R``.
 
@@ -324,7 +344,7 @@ class Lolimot:
         idx = np.clip((Z * bins).astype(int), 0, bins - 1)
         counts = np.zeros((bins,) * p, dtype=int)
         np.add.at(counts, tuple(idx.T), 1)
-        return counts >= self.coverage_min_count
+        return _closing(counts >= self.coverage_min_count)
 
     # ------------------------------------------------------------------ using
     def _require_fitted(self) -> None:

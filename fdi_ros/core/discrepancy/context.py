@@ -84,7 +84,7 @@ def smooth_derivative(x: np.ndarray, t: np.ndarray, segment: np.ndarray,
     """d x / d t per segment after a centred moving average of about ``window_s``.
 
     NaN samples stay NaN (and make their neighbourhood NaN): a derivative across a missing
-    sample would be a guess.
+    sample would be a guess. Near the segment ends the window is shortened.
     """
     out = np.full_like(x, np.nan, dtype=float)
     for s in np.unique(segment):
@@ -95,11 +95,10 @@ def smooth_derivative(x: np.ndarray, t: np.ndarray, segment: np.ndarray,
         dt = float(np.median(np.diff(ts)))
         w = max(1, int(round(window_s / dt)))
         if w > 1 and idx.size > w:
-            k = np.ones(w) / w
-            xs = np.convolve(xs, k, mode="same")
-            # the ends of a "same" convolution average zeros in: drop them
-            xs[: w // 2] = np.nan
-            xs[idx.size - (w - 1 - w // 2):] = np.nan
+            k = np.ones(w)
+            # at the ends the window is cut short: average over the samples it holds (an
+            # on-line residual needs the derivative at the newest sample)
+            xs = np.convolve(xs, k, mode="same") / np.convolve(np.ones(idx.size), k, mode="same")
         out[idx] = np.gradient(xs, ts)
     return out
 

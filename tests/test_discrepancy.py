@@ -97,7 +97,7 @@ def test_input_dependence_and_harmonic_recovered():
 
 
 def test_orifice_flux_choked_and_subsonic():
-    # choked: q = p / sqrt(R T) * sqrt(kappa) * (2 / (kappa + 1)) ** ((kappa + 1) / (2 (kappa - 1)))
+    # choked: q = p / sqrt(R T) * sqrt(k) * (2 / (k + 1)) ** ((k + 1) / (2 (k - 1)))
     k = 1.4
     q = orifice_flux(np.array([1e5]), np.array([300.0]), np.array([2e4]))[0]
     ref = 1e5 / math.sqrt(287.06 * 300) * math.sqrt(k) * (2 / (k + 1)) ** ((k + 1) / (2 * (k - 1)))

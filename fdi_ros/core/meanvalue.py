@@ -14,10 +14,10 @@ manifold also sees the air stored in those volumes while their pressure changes;
 
     m_meas = m_air + sum_j V_j / (R T) * d p_j / d t
 
-with the volumes V_j identified in the same least-squares problem. For crank-angle resolved
-data (a diesel's MAF pulsates with the cylinders' suction, period 180 deg CA) ``orders`` adds
-the pulsation ``sum_k a_k(n, p) cos(2 pi k alpha / 180) + b_k(n, p) sin(...)`` with
-polynomial amplitude maps, identified in the same linear problem. Operating points outside the identified region (with a
+with the volumes V_j identified in the same least-squares problem. For crank-angle resolved data (a
+diesel's MAF pulsates with the cylinders' suction, period 180 deg CA) ``orders`` adds the pulsation
+``sum_k a_k(n, p) cos(2 pi k alpha / 180) + b_k(n, p) sin(...)`` with polynomial amplitude maps,
+identified in the same linear problem. Operating points outside the identified region (with a
 margin) are predicted as NaN: the analysis masks them instead of extrapolating a polynomial.
 """
 

@@ -323,11 +323,11 @@ def _fit_1d(ctx: ChannelContext, base: np.ndarray, train: np.ndarray, transform,
             ) -> float:
     """Minimise the training SSE of ``transform(value)`` over [lo, hi].
 
-    The grid is evaluated once per base prediction for all folds together: the engine puts
-    the index intervals each fold leaves out on the context (``ctx.folds``), and a fold's
-    training SSE is the total minus those intervals, from one cumulative sum per grid value. The minimum is located by a
-    parabola through the best grid point and its neighbours (in log space for ``log``);
-    ``refine`` polishes it with Brent's method (the final fit on all samples).
+    The grid is evaluated once per base prediction for all folds together: the engine puts the
+    index intervals each fold leaves out on the context (``ctx.folds``), and a fold's training SSE
+    is the total minus those intervals, from one cumulative sum per grid value. The minimum is
+    located by a parabola through the best grid point and its neighbours (in log space for
+    ``log``); ``refine`` polishes it with Brent's method (the final fit on all samples).
     """
     grid = np.geomspace(lo, hi, n_grid) if log else np.linspace(lo, hi, n_grid)
     valid = np.isfinite(ctx.y) & np.isfinite(base)

@@ -11,11 +11,11 @@ Procedure for each channel (greedy forward selection, at most ``max_findings`` s
 2. For every candidate (every catalogue effect, every explaining column, with and without an
    onset time) the out-of-block predictions give per block the held-out mean squared error
    before (current model, refitted per fold) and after (current model + candidate).
-3. Significance: one-sided Wilcoxon signed-rank test on the blockwise differences ``d_b =
-   MSE_before_b - MSE_after_b`` (zero differences dropped). Blocks, not samples, are the units: within
-   a block the residuals are correlated, the blocks (several seconds, long against the
-   correlation time) are treated as independent. The p-value is Bonferroni-corrected over all
-   candidates of the step and all channels. A Diebold-Mariano test on the per-sample loss
+3. Significance: one-sided Wilcoxon signed-rank test on the blockwise differences
+   ``d_b = MSE_before_b - MSE_after_b`` (zero differences dropped). Blocks, not samples, are
+   the units: within a block the residuals are correlated, the blocks (several seconds, long
+   against the correlation time) are treated as independent. The p-value is
+   Bonferroni-corrected over all candidates of the step and all channels. A Diebold-Mariano test on the per-sample loss
    differential with a Newey-West variance is reported alongside (``p_dm``).
 4. Choice: the candidate with the lowest held-out MSE; a candidate with fewer parameters
    replaces it when its MSE is within one standard error of the best (the one-SE rule of

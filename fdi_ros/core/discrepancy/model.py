@@ -33,13 +33,7 @@ FORMAT = "fdi_ros.discrepancy.extended_model/1"
 def _baseline_types() -> dict[str, Any]:
     from fdi_ros.core.meanvalue import SpeedDensityModel
 
-    types: dict[str, Any] = {"speed_density": SpeedDensityModel}
-    try:  # the diesel reference model, when that module is present
-        from fdi_ros.core.discrepancy.diesel import DieselSpeedDensity
-        types["diesel_speed_density"] = DieselSpeedDensity
-    except ImportError:
-        pass
-    return types
+    return {"speed_density": SpeedDensityModel}
 
 
 def baseline_from_dict(d: dict):

@@ -4,22 +4,24 @@ Procedure for each channel (greedy forward selection, at most ``max_findings`` s
 
 1. The valid samples are cut into contiguous blocks of equal duration (about 5 s, at least
    24 blocks). In ``n_folds`` refits (default: one per block), fold k holds out the blocks
-   k, k + n_folds, ...; the
-   extensions are fitted on the other blocks minus a guard band of ``guard_s`` on each side
-   of every held-out block (the residuals of 20 Hz data are strongly autocorrelated, so a
+   k, k + n_folds, ...; the extensions are fitted on the other blocks minus a guard band of
+   ``guard_s`` on each side of every held-out block (the residuals of 20 Hz data are strongly autocorrelated, so a
    training sample right next to the held-out block would leak its value into the test).
-2. For every candidate (every catalogue effect, every explaining column, with and without an
-   onset time) the out-of-block predictions give per block the held-out mean squared error
+2. For every candidate (every catalogue effect, every explaining column, always on, after an
+   onset time, or piecewise constant in time) the out-of-block predictions give per block the held-out mean squared error
    before (current model, refitted per fold) and after (current model + candidate).
 3. Significance: one-sided Wilcoxon signed-rank test on the blockwise differences
    ``d_b = MSE_before_b - MSE_after_b`` (zero differences dropped). Blocks, not samples, are
    the units: within a block the residuals are correlated, the blocks (several seconds, long
    against the correlation time) are treated as independent. The p-value is
-   Bonferroni-corrected over all candidates of the step and all channels. A Diebold-Mariano test on the per-sample loss
-   differential with a Newey-West variance is reported alongside (``p_dm``).
-4. Choice: the candidate with the lowest held-out MSE; a candidate with fewer parameters
-   replaces it when its MSE is within one standard error of the best (the one-SE rule of
-   cross-validation), so an offset is not reported as a quadratic input dependence.
+   Bonferroni-corrected over all candidates of the step and all channels. A Diebold-Mariano
+   test on the per-sample loss differential with a Newey-West variance is reported alongside
+   (``p_dm``).
+4. Choice: the candidate with the lowest held-out MSE; a special case of it (the same effect
+   always on instead of after an onset, or after one onset instead of piecewise in time)
+   replaces it when its MSE is within one standard error (the one-SE rule of
+   cross-validation). Other effects within one standard error are reported as
+   ``alternatives``: the data cannot tell them apart.
 5. It becomes a finding if significant and its held-out gain ``100 (1 - RMSE_after /
    RMSE_before)`` is at least ``min_gain_pct``; it then joins the model and the next step
    looks for what is left. Nothing significant: the verdict is ``consistent``.

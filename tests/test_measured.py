@@ -96,3 +96,19 @@ def test_segment_means_remove_the_pulsation():
     s = segment_means(m)
     assert s.alpha is None and s.n_samples == 18  # first and last segments dropped
     np.testing.assert_allclose(s["maf"], 100.0 + 0.01 * s.t, atol=1e-9)
+
+
+def test_bag_of_sensor_blocks_loads_as_one_record(tmp_path):
+    from fdi_ros import bag
+    from fdi_ros.core.diesel.plant import DieselIntakePlant
+
+    plant = DieselIntakePlant(seed=3, dalpha_deg=30.0)
+    plant.set_inputs(n_rpm=1800.0, fuel_mg=20.0)
+    blocks = [plant.advance(240) for _ in range(3)]
+    with bag.BagWriter(tmp_path / "b") as w:
+        for b in blocks:
+            w.write_block(b)
+    m = load_measured(tmp_path / "b")
+    assert m.n_samples == 720 and m.alpha is not None
+    np.testing.assert_allclose(m["maf"], np.concatenate([b.channel("maf") for b in blocks]))
+    assert m.units["maf"] == "kg/h"

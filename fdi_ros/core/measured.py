@@ -311,9 +311,7 @@ def load_bag(path: str | Path, *, topic: str = "/fdi/sensor_block",
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"bag {path} not found")
-    blocks = list(bag.read_blocks(path))
-    if topic:
-        blocks = [b for b in blocks if getattr(b, "topic", topic) == topic] or blocks
+    blocks = list(bag.read_blocks(path, topic=topic))
     if not blocks:
         raise ValueError(f"bag {path}: no sensor blocks")
     chans = blocks[0].channels

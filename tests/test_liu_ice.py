@@ -86,3 +86,22 @@ def test_cli_writes_json_report_and_model(tmp_path):
     rc = main(["discrepancy", "--plant", "liu_ice", "--measured", str(tmp_path / "nope.csv"),
                "--json", str(out)])
     assert rc == 2
+
+
+def test_missing_samples_and_gaps_are_masked(model, tmp_path):
+    import csv
+
+    rows = list(csv.reader(open(DATA / "wltp_f_iml_6mm.csv")))
+    hdr, body = rows[0], rows[1:]
+    col = hdr.index("air_mass_flow")
+    for i in range(500, 540):
+        body[i][col] = ""  # 2 s of missing MAF samples
+    body = body[:1500] + body[1700:]  # a 10 s gap
+    path = tmp_path / "holes.csv"
+    with open(path, "w", newline="") as f:
+        csv.writer(f).writerows([hdr] + body)
+    d = load_csv(path, MAPPING)
+    assert d.segment.max() == 1  # the gap starts a new segment
+    res, _ = discover(d, model)
+    assert res.channels["maf"]["n_masked"] >= 40
+    assert res.findings[0].params["onset_s"] == pytest.approx(120.0, abs=5.0)

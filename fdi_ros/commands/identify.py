@@ -188,11 +188,12 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
     report = {"out": str(out), "n_segments": int(data["n"].size), "n_train": res.n_train,
               "n_val": res.n_val, "n_test": res.n_test, "train_s": round(res.train_s, 3),
               "eta_storage_coeff": res.models.info.get("storage_coeff", 0.0),
-              "models": {k: {"n_models": r.n_models, "nrmse_test": round(res.nrmse_test[k], 4),
+              "models": {k: {"n_models": {n: r.n_models for n, r in res.results.items()
+                                          if n == k or n.startswith(k + "_")},
+                             "nrmse_test": round(res.nrmse_test[k], 4),
                              "nrmse_test_lut": round(res.nrmse_test_lut[k], 4),
-                             "lut_vs_model_rmse": res.lut_error[k]["rmse"],
-                             "stop": r.message}
-                         for k, r in res.results.items()}}
+                             "lut_vs_model_rmse": res.lut_error[k]["rmse"]}
+                         for k in res.nrmse_test}}
     scfg = None
     if fault_free and str(fault_free).lower() != "none":
         ff = load_features(fault_free, seed=threshold_seed, mapping=mapping)
@@ -221,10 +222,12 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(report, indent=1))
     else:
-        print(f"identified {len(res.results)} models from {report['n_segments']} segments "
+        print(f"identified {len(res.nrmse_test)} reference models ({len(res.results)} LOLIMOT "
+              f"maps) from {report['n_segments']} segments "
               f"in {res.train_s:.2f} s -> {report['out']}")
         for k, v in report["models"].items():
-            print(f"  {k:10s} models={v['n_models']:2d}  held-out NRMSE={v['nrmse_test']:.4f}"
+            nm = "+".join(str(x) for x in v["n_models"].values())
+            print(f"  {k:10s} models={nm:5s}  held-out NRMSE={v['nrmse_test']:.4f}"
                   f"  (table {v['nrmse_test_lut']:.4f})")
     return 0
 
@@ -267,16 +270,18 @@ def identification_figures(res, data, outdir) -> list[Path]:
     plt.close(fig)
     # Figs. 8-10: maps (look-up table over the identified region) against the data points.
     for k in mset.outputs:
-        tab = mset.tables[k]
+        tab = mset.tables[k if k in mset.tables else f"{k}_cos"]
         bn, br = tab.breakpoints
         nn, rr = np.meshgrid(np.linspace(bn[0], bn[-1], 60), np.linspace(br[0], br[-1], 50))
         P = np.column_stack([nn.ravel(), rr.ravel()])
-        v, ok = tab.evaluate(P)
-        V = np.where(ok, v, np.nan).reshape(nn.shape)
+        ref, ok = mset.predict(P[:, 0], P[:, 1])
+        v = ref[k]
         y = data[k]
         if k in mset.phase_centre:
             from fdi_ros.core.diesel.reference import wrap_phase
             y = wrap_phase(y, mset.phase_centre[k])
+            v = wrap_phase(v, mset.phase_centre[k])
+        V = np.where(ok, v, np.nan).reshape(nn.shape)
         fig = plt.figure(figsize=(13, 5))
         ax = fig.add_subplot(1, 2, 1, projection="3d")
         ax.plot_surface(nn, rr, np.ma.masked_invalid(V), cmap="viridis", alpha=0.7,
@@ -288,7 +293,9 @@ def identification_figures(res, data, outdir) -> list[Path]:
         ax.set_zlabel(f"{k} [{UNITS[k]}]")
         ax.set_title(f"reference model {k} (ECU table) vs data")
         ax2 = fig.add_subplot(1, 2, 2)
-        yp = mset.models[k].predict(X[te])
+        yp = mset.predict(X[te, 0], X[te, 1], use_tables=False)[0][k]
+        if k in mset.phase_centre:
+            yp = wrap_phase(yp, mset.phase_centre[k])
         ax2.plot(y[te], yp, ".", ms=2)
         lim = [np.nanmin(y[te]), np.nanmax(y[te])]
         ax2.plot(lim, lim, "k--", lw=1)

@@ -42,6 +42,7 @@ OUTPUTS = ("eta_v", "maf_amp", "maf_phase", "p2_amp", "p2_phase")
 UNITS = {"n": "rpm", "rho2": "kg/m^3", "eta_v": "1", "maf_amp": "kg/h", "maf_phase": "deg CA",
          "p2_amp": "Pa", "p2_phase": "deg CA"}
 PHASES = ("maf_phase", "p2_phase")
+AMPLITUDE_OF = {"maf_phase": "maf_amp", "p2_phase": "p2_amp"}
 PERIOD_DEG = 180.0
 MANIFEST = "reference_models.json"
 
@@ -56,6 +57,18 @@ def circular_mean(x) -> float:
     """Circular mean of phases [deg CA] with period 180 deg CA."""
     a = 2.0 * np.pi * np.asarray(x, dtype=float) / PERIOD_DEG
     return float(np.angle(np.mean(np.exp(1j * a))) * PERIOD_DEG / (2.0 * np.pi))
+
+
+def branch_centre(x) -> float:
+    """Centre of the 180 deg CA branch whose cut lies in the widest gap of the phases [deg CA]
+    (a phase that drifts over most of a period must not be cut through its data)."""
+    v = np.sort(np.mod(np.asarray(x, dtype=float), PERIOD_DEG))
+    if v.size == 0:
+        return 0.0
+    gaps = np.diff(np.concatenate([v, [v[0] + PERIOD_DEG]]))
+    i = int(np.argmax(gaps))
+    cut = v[i] + 0.5 * gaps[i]
+    return float(wrap_phase(cut + 0.5 * PERIOD_DEG, 0.0))
 
 
 def nrmse(y, yhat) -> float:
@@ -128,6 +141,7 @@ class IdentificationConfig:
     lut_rho2: tuple[float, ...] = ()
     storage_correction: bool = True
     rate_lag: int = 2
+    phase_min_amp_frac: float = 0.1
 
     def __post_init__(self) -> None:
         if self.block < 1:
@@ -159,7 +173,12 @@ class ReferenceModelSet:
 
     @property
     def outputs(self) -> tuple[str, ...]:
-        return tuple(k for k in OUTPUTS if k in self.models)
+        return tuple(k for k in OUTPUTS if k in self.models or f"{k}_cos" in self.models)
+
+    def _one(self, name: str, X: np.ndarray, use_tables: bool):
+        if use_tables and name in self.tables:
+            return self.tables[name].evaluate(X)
+        return self.models[name].predict(X), np.ones(X.shape[0], dtype=bool)
 
     def in_region(self, n, rho2) -> np.ndarray:
         """Identified region of the eta_v model's training data (all five share the data)."""
@@ -173,11 +192,16 @@ class ReferenceModelSet:
         valid = self.models[self.outputs[0]].in_region(X)
         out = {}
         for k in self.outputs:
-            if use_tables and k in self.tables:
-                v, ok = self.tables[k].evaluate(X)
+            if k in PHASES and f"{k}_cos" in self.models:
+                # Phase from the phasor maps: no wrap-around anywhere in the map. Phases have
+                # their own (amplitude) validity, so their tables do not decide it.
+                u, _ = self._one(f"{k}_cos", X, use_tables)
+                v, _ = self._one(f"{k}_sin", X, use_tables)
+                out[k] = np.degrees(np.arctan2(v, u)) * PERIOD_DEG / 360.0
+                continue
+            v, ok = self._one(k, X, use_tables)
+            if k not in PHASES:
                 valid &= ok
-            else:
-                v = self.models[k].predict(X)
             out[k] = v
         return out, valid
 
@@ -283,7 +307,7 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
         n_bp = np.linspace(X[:, 0].min(), X[:, 0].max(), 17)
     if r_bp.size == 0:
         r_bp = np.linspace(X[:, 1].min(), X[:, 1].max(), 13)
-    models, tables, results, centres = {}, {}, {}, {}
+    models, tables, results, centres, min_amp = {}, {}, {}, {}, {}
     nr_tr, nr_te, nr_lut, lut_err = {}, {}, {}, {}
     t0 = time.perf_counter()
     outputs = OUTPUTS
@@ -327,22 +351,61 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
                                   options={"xatol": 0.01 * hi, "maxiter": 20})
             storage = float(opt.x) if opt.fun < val_rmse(c0) else c0
             y = y - storage * x0
-        c = circular_mean(y[tr]) if k in PHASES else None
-        if c is not None:
-            centres[k] = c
-        y = _target(k, y, c)
+        ktr, kva, kte = tr, va, te
+        if k in PHASES:
+            # The phase of a harmonic that is hardly there is noise: phases are identified
+            # (and later compared) only where the amplitude is a fair part of its range.
+            amp = np.asarray(data[AMPLITUDE_OF[k]], dtype=float)[finite]
+            min_amp[k] = cfg.phase_min_amp_frac * float(np.percentile(amp[tr], 95))
+            ktr, kva, kte = (i[amp[i] >= min_amp[k]] for i in (tr, va, te))
+        if k in PHASES:
+            # The phase wraps (period 180 deg CA) and drifts through most of a period across
+            # the air path's resonance: identify the unit phasor (cos, sin) instead, two
+            # smooth maps, and take the angle of their prediction.
+            centres[k] = branch_centre(y[ktr])
+            ang = 2.0 * np.pi * y / PERIOD_DEG
+            pred = {}
+            for comp, vals in (("cos", np.cos(ang)), ("sin", np.sin(ang))):
+                name = f"{k}_{comp}"
+                m = cfg.lolimot()
+                res = m.fit(X[ktr], vals[ktr], X_val=X[kva], y_val=vals[kva],
+                            progress=progress, input_names=INPUTS, output_name=name)
+                models[name], results[name] = m, res
+                tables[name] = LookupTable.from_model(m.predict, (n_bp, r_bp),
+                                                      region=m.in_region, input_names=INPUTS,
+                                                      output_name=name)
+                pred[comp] = (m.predict, tables[name])
+            yw = wrap_phase(y, centres[k])
+
+            def phase_of(Xs, use_table, pred=pred):
+                u = pred["cos"][1](Xs) if use_table else pred["cos"][0](Xs)
+                v = pred["sin"][1](Xs) if use_table else pred["sin"][0](Xs)
+                return np.degrees(np.arctan2(v, u)) * PERIOD_DEG / 360.0
+
+            def circ_nrmse(idx, use_table, yw=yw):
+                e = wrap_phase(y[idx] - phase_of(X[idx], use_table), 0.0)
+                return float(np.sqrt(np.mean(e ** 2)) / np.std(yw[idx]))
+
+            nr_tr[k] = circ_nrmse(ktr, False)
+            nr_te[k] = circ_nrmse(kte, False)
+            nr_lut[k] = circ_nrmse(kte, True)
+            lut_err[k] = {"rmse": float(np.sqrt(np.mean(wrap_phase(
+                phase_of(X[kte], True) - phase_of(X[kte], False), 0.0) ** 2))),
+                "n_points": int(kte.size)}
+            continue
         m = cfg.lolimot()
-        res = m.fit(X[tr], y[tr], X_val=X[va], y_val=y[va], progress=progress,
+        res = m.fit(X[ktr], y[ktr], X_val=X[kva], y_val=y[kva], progress=progress,
                     input_names=INPUTS, output_name=k)
         models[k], results[k] = m, res
         tables[k] = LookupTable.from_model(m.predict, (n_bp, r_bp), region=m.in_region,
                                            input_names=INPUTS, output_name=k)
-        nr_tr[k] = nrmse(y[tr], m.predict(X[tr]))
-        nr_te[k] = nrmse(y[te], m.predict(X[te]))
-        nr_lut[k] = nrmse(y[te], tables[k](X[te]))
-        lut_err[k] = table_error(m.predict, tables[k], X[te])
+        nr_tr[k] = nrmse(y[ktr], m.predict(X[ktr]))
+        nr_te[k] = nrmse(y[kte], m.predict(X[kte]))
+        nr_lut[k] = nrmse(y[kte], tables[k](X[kte]))
+        lut_err[k] = table_error(m.predict, tables[k], X[kte])
     train_s = time.perf_counter() - t0
-    info = {"nrmse_test": nr_te, "storage_coeff": storage, "n_models": {k: r.n_models for k, r in results.items()},
+    info = {"nrmse_test": nr_te, "storage_coeff": storage, "phase_min_amp": min_amp,
+            "n_models": {k: r.n_models for k, r in results.items()},
             "n_train": int(tr.size), "config": {k: (list(v) if isinstance(v, tuple) else v)
                                                 for k, v in asdict(cfg).items()}}
     mset = ReferenceModelSet(models=models, tables=tables, phase_centre=centres, info=info)

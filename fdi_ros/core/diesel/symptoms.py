@@ -72,10 +72,16 @@ def parity_residuals(models: ReferenceModelSet, data: Mapping[str, np.ndarray], 
     ref, valid = models.predict(n, np.atleast_1d(np.asarray(data["rho2"], dtype=float)),
                                 use_tables=use_tables)
     R = np.empty((n.size, len(RESIDUALS)))
+    min_amp = models.info.get("phase_min_amp", {})
     for j, r in enumerate(RESIDUALS):
         k = _OUTPUT_OF[r]
         d = _SIGN[r] * (np.atleast_1d(np.asarray(data[k], dtype=float)) - ref[k])
-        R[:, j] = wrap_phase(d, 0.0) if k.endswith("phase") else d
+        if k.endswith("phase"):
+            d = wrap_phase(d, 0.0)
+            # No phase information where the harmonic is weak: no phase residual there.
+            weak = ref[k.replace("phase", "amp")] < float(min_amp.get(k, -np.inf))
+            d = np.where(weak, 0.0, d)
+        R[:, j] = d
     valid = valid & np.all(np.isfinite(R), axis=1)
     return R, valid
 

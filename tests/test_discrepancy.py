@@ -176,3 +176,13 @@ def test_extended_model_save_load_roundtrip(tmp_path):
                            valid=True, status="", names=names, units=("",) * 6, values=vals)
         out = rm.residuals(fv)
     assert out.valid and abs(out.values[0]) < 1.0  # the gain error is explained
+
+
+def test_data_outside_the_identified_region_is_invalid_not_consistent():
+    rng = np.random.default_rng(7)
+    t = np.arange(0, 60, 0.05)
+    yhat = np.full(t.size, np.nan)  # the model refuses every operating point
+    ctx = _ctx(rng.normal(size=t.size), yhat, t)
+    res = analyse({"y": ctx})
+    assert res.verdict == "invalid" and not res.success
+    assert "too few valid samples" in res.message

@@ -163,4 +163,6 @@ def run(args: argparse.Namespace) -> int:
                           title=f"Discrepancy analysis: {args.plant} model vs "
                                 f"{Path(args.measured).name}")
         say(f"report -> {md}")
+    if not res.success:
+        raise ValueError(f"{args.measured}: {res.message} (JSON written to {out})")
     return 0

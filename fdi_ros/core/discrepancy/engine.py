@@ -366,6 +366,10 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
         summary[ch] = info
         chains[ch] = []
         tv = ctx.t[ok]
+        if tv.size < 2:
+            info["status"] = (f"too few valid samples ({n_ok}): measured or predicted values "
+                              "missing (outside the identified region?)")
+            continue
         nb = cfg.n_blocks or int(np.clip(round((tv[-1] - tv[0]) / cfg.block_s), 24, 60))
         info["n_blocks"] = nb
         if n_ok < 20 * nb:
@@ -504,8 +508,17 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
     findings = [Finding(**{**f.__dict__, "rank": i + 1}) for i, f in enumerate(findings)]
     table.sort(key=lambda c: -c.gain_pct)
     verdict, msg = _verdict(findings, table)
+    skipped = {ch: c["status"] for ch, c in summary.items() if "status" in c}
+    success = len(skipped) < len(summary)
+    if not success:
+        # nothing was analysed (e.g. every sample outside the identified region): say so
+        verdict = "invalid"
+        msg = "no channel could be analysed: " + "; ".join(f"{k}: {v}" for k, v in
+                                                          skipped.items())
+    elif skipped:
+        msg += " (not analysed: " + "; ".join(f"{k}: {v}" for k, v in skipped.items()) + ")"
     return DiscrepancyResult(findings=findings, candidates=table, verdict=verdict, message=msg,
-                             success=True, channels=summary, chains=chains,
+                             success=success, channels=summary, chains=chains,
                              n_blocks=max([c.get("n_blocks", 0) for c in summary.values()]
                                           or [0]), nit=nit,
                              seconds=time.perf_counter() - t0, config=cfg, oof=oof)
@@ -529,6 +542,9 @@ def merge_results(a: DiscrepancyResult, b: DiscrepancyResult, *, b_suffix: str,
         channels.update({f"{ch} (crank-resolved)": v for ch, v in a.channels.items()})
     cands = sorted(a.candidates + b.candidates, key=lambda c: -c.gain_pct)
     verdict, msg = _verdict(findings, cands)
+    if not (a.success and b.success):
+        verdict = "invalid"
+        msg = "; ".join(r.message for r in (a, b) if not r.success)
     return DiscrepancyResult(findings=findings, candidates=cands, verdict=verdict, message=msg,
                              success=a.success and b.success, channels=channels,
                              chains=chains, n_blocks=max(a.n_blocks, b.n_blocks),

@@ -194,6 +194,12 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
                              "nrmse_test_lut": round(res.nrmse_test_lut[k], 4),
                              "lut_vs_model_rmse": res.lut_error[k]["rmse"]}
                          for k in res.nrmse_test}}
+    import numpy as np
+
+    from fdi_ros.core.diesel.reference import table_grid_errors
+
+    X = np.column_stack([data[k] for k in INPUTS])
+    report["table_vs_model_rmse"] = table_grid_errors(res.models, X[:: max(1, len(X) // 4000)])
     scfg = None
     if fault_free and str(fault_free).lower() != "none":
         ff = load_features(fault_free, seed=threshold_seed, mapping=mapping)

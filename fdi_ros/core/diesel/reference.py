@@ -414,3 +414,20 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
                                 n_train=int(tr.size), n_val=int(va.size), n_test=int(te.size),
                                 train_s=train_s, success=all(r.success for r in results.values()),
                                 message="identified five reference models")
+
+
+def table_grid_errors(models: ReferenceModelSet, X: np.ndarray,
+                      grids: tuple[tuple[int, int], ...] = ((5, 4), (9, 7), (17, 13), (33, 25))
+                      ) -> dict[str, dict[str, float]]:
+    """Table-versus-model RMSE of every LOLIMOT map for several ECU grid sizes (equidistant
+    breakpoints over the identified range), evaluated at the points X (valid ones only)."""
+    out = {}
+    for nn, nr in grids:
+        row = {}
+        for name, m in models.models.items():
+            lo, hi = m.input_range
+            bp = (np.linspace(lo[0], hi[0], nn), np.linspace(lo[1], hi[1], nr))
+            lut = LookupTable.from_model(m.predict, bp, region=m.in_region)
+            row[name] = table_error(m.predict, lut, X)["rmse"]
+        out[f"{nn}x{nr}"] = row
+    return out

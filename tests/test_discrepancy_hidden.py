@@ -101,3 +101,20 @@ def test_two_hidden_effects_both_found(baseline):
     assert "gain_error" in found and "missing_harmonic" in found, list(found)
     assert abs(found["gain_error"]["gain"] - g["gain"]) < 0.01
     assert found["missing_harmonic"]["order"] == h["order"]
+
+
+REFERENCE_DIR = "build/models/diesel"
+
+
+@pytest.mark.skipif(not __import__("pathlib").Path(REFERENCE_DIR, "reference_models.json")
+                    .is_file(), reason=f"no reference models in {REFERENCE_DIR} (made by "
+                                       "`fdi-ros identify`)")
+def test_reference_models_miss_the_boost_volume_filling():
+    """The project's static eta_V reference (paper eq. 3) has no storage term: on a transient
+    cycle the MAF residual follows dp2/dt (air stored in the boost volume)."""
+    from fdi_ros.core.discrepancy.reference_baseline import DieselReferenceBaseline
+
+    res, _ = discover(sc.plant_record(201), DieselReferenceBaseline(path=REFERENCE_DIR))
+    top = res.findings[0]
+    assert (top.effect, top.params["input"]) == ("input_dependence", "d/dt p2")
+    assert top.params["coef"][0] > 0 and top.gain_pct > 30.0

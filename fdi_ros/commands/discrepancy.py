@@ -37,6 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--baseline", default=None,
                         help="baseline model JSON (a saved baseline or extended model); "
                              "default: identify on fault-free data")
+    parser.add_argument("--reference", default=None,
+                        help="diesel: check the project's reference models (LOLIMOT tables, "
+                             "a directory made by `fdi-ros identify`) instead of the "
+                             "speed-density + pulsation model")
     parser.add_argument("--ident", nargs="*", default=None,
                         help="fault-free CSVs to identify the baseline on (liu_ice default: "
                              "the *_NF.csv files of the data directory)")
@@ -78,6 +82,16 @@ def build_baseline(args, say):
 
     if args.baseline:
         return load_baseline_file(Path(args.baseline))
+    if args.reference:
+        if args.plant != "diesel":
+            raise ValueError("--reference is for the diesel plant's reference models")
+        from fdi_ros.core.discrepancy.reference_baseline import DieselReferenceBaseline
+        from fdi_ros.core.diesel.reference import MANIFEST
+
+        if not (Path(args.reference) / MANIFEST).is_file():
+            raise FileNotFoundError(f"no reference models in {args.reference} (missing "
+                                    f"{MANIFEST}); run `fdi-ros identify` first")
+        return DieselReferenceBaseline(path=str(args.reference))
     if args.plant == "liu_ice":
         from fdi_ros.core.meanvalue import LIU_ICE_FAULT_FREE, identify_liu_ice
 

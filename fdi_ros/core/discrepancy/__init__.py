@@ -39,6 +39,9 @@ def discover(data: Measured, model, *, config: DiscrepancyConfig | None = None,
     stages before; the views share the time base, so one chain of extensions results.
     """
     cfg = config or DiscrepancyConfig()
+    if data.alpha is not None and not getattr(model, "orders", ()):
+        # crank-resolved data, mean-value model: compare the means of the 180 deg CA segments
+        data = segment_means(data)
     if data.alpha is None or not getattr(model, "orders", ()):
         res = analyse(build_contexts(data, model), config=cfg, progress=progress)
         return res, ExtendedModel(baseline=model, chains=res.chains, source=data.source)

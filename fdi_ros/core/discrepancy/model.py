@@ -33,7 +33,10 @@ FORMAT = "fdi_ros.discrepancy.extended_model/1"
 def _baseline_types() -> dict[str, Any]:
     from fdi_ros.core.meanvalue import SpeedDensityModel
 
-    return {"speed_density": SpeedDensityModel}
+    from fdi_ros.core.discrepancy.reference_baseline import DieselReferenceBaseline
+
+    return {"speed_density": SpeedDensityModel,
+            "diesel_reference_baseline": DieselReferenceBaseline}
 
 
 def baseline_from_dict(d: dict):

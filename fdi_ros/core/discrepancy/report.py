@@ -82,6 +82,8 @@ def write_report(out_dir: str | Path, data: Measured, baseline, extended: Extend
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     crank = data.alpha is not None and bool(getattr(baseline, "orders", ()))
+    if data.alpha is not None and not crank:
+        data = segment_means(data)  # a mean-value model is compared on segment means
     view = segment_means(data) if crank else data
     base_view = baseline.without_pulsation() if crank else baseline
     ctxs = build_contexts(view, base_view)
@@ -112,7 +114,8 @@ def write_report(out_dir: str | Path, data: Measured, baseline, extended: Extend
         ax[1].set_xlabel("time [s]")
         ax[1].legend(loc="upper left", fontsize=8)
         ax[0].set_title(f"{ch}: measured vs model" + (" (180 deg CA segment means)"
-                                                     if crank else ""))
+                                                     if view.alpha is None and "segment" in
+                                                     view.source else ""))
         fig.tight_layout()
         name = f"residual_time_{ch}.png"
         fig.savefig(out / name, dpi=90)

@@ -26,6 +26,13 @@ __all__ = ["CATALOGUE", "EFFECT_TYPES", "ChannelContext", "DiscrepancyConfig",
 CRANK_VIEW = ("missing_harmonic", "sensor_lag", "dead_time")
 
 
+def _tag_views(res: DiscrepancyResult) -> DiscrepancyResult:
+    """Mark each finding with the view its held-out RMSE refers to."""
+    res.findings = [replace(f, view="crank-resolved" if f.effect in CRANK_VIEW
+                            else "segment means") for f in res.findings]
+    return res
+
+
 def discover(data: Measured, model, *, config: DiscrepancyConfig | None = None,
              progress=None) -> tuple[DiscrepancyResult, ExtendedModel]:
     """Analyse ``data`` against the baseline ``model``; return the result and extended model.
@@ -39,11 +46,13 @@ def discover(data: Measured, model, *, config: DiscrepancyConfig | None = None,
     stages before; the views share the time base, so one chain of extensions results.
     """
     cfg = config or DiscrepancyConfig()
+    view = "samples"
     if data.alpha is not None and not getattr(model, "orders", ()):
         # crank-resolved data, mean-value model: compare the means of the 180 deg CA segments
-        data = segment_means(data)
+        data, view = segment_means(data), "segment means"
     if data.alpha is None or not getattr(model, "orders", ()):
         res = analyse(build_contexts(data, model), config=cfg, progress=progress)
+        res.findings = [replace(f, view=view) for f in res.findings]
         return res, ExtendedModel(baseline=model, chains=res.chains, source=data.source)
     mean_model = model.without_pulsation()
     stage1 = tuple(e for e in cfg.effects if e in ("sensor_lag", "dead_time"))
@@ -62,10 +71,11 @@ def discover(data: Measured, model, *, config: DiscrepancyConfig | None = None,
     if res_1 is not None:
         res_a = merge_results(res_1, res_a, b_suffix="", b_channels=False)
     if not stage3:
-        return res_a, ExtendedModel(baseline=model, chains=res_a.chains, source=data.source)
+        return _tag_views(res_a), ExtendedModel(baseline=model, chains=res_a.chains,
+                                                source=data.source)
     ctx_b = build_contexts(data, model)
     for ch, ctx in ctx_b.items():
         ctx.yhat = apply_chain(ctx, res_a.chains.get(ch, []))
     res_b = analyse(ctx_b, config=replace(cfg, effects=stage3), progress=progress)
-    res = merge_results(res_a, res_b, b_suffix=" (crank-resolved)")
+    res = _tag_views(merge_results(res_a, res_b, b_suffix=" (crank-resolved)"))
     return res, ExtendedModel(baseline=model, chains=res.chains, source=data.source)

@@ -120,6 +120,7 @@ class Finding:
     n_params: int
     step: int
     alternatives: list = field(default_factory=list)
+    view: str = "samples"  # "samples", "segment means" or "crank-resolved"
 
     def to_dict(self) -> dict:
         return _jsonable(asdict(self))

@@ -230,10 +230,11 @@ def write_report(out_dir: str | Path, data: Measured, baseline, extended: Extend
     # Markdown
     lines = [f"# {title}", "", f"Data: `{data.source}` ({data.n_samples} samples, "
              f"{data.t[-1] - data.t[0]:.1f} s). Verdict: **{result.verdict}**: {result.message}.",
-             "", "| rank | effect | channel | parameters | RMSE before | RMSE after (held-out) "
-             "| gain | p (adj.) |", "|---|---|---|---|---|---|---|---|"]
+             "", "| rank | effect | channel (view) | parameters | RMSE before | RMSE after "
+             "(held-out) | gain | p (adj.) |", "|---|---|---|---|---|---|---|---|"]
     for f in result.findings:
-        lines.append(f"| {f.rank} | {f.label} | {f.channel} | {_fmt_params(f.params)} | "
+        lines.append(f"| {f.rank} | {f.label} | {f.channel} ({f.view}) | "
+                     f"{_fmt_params(f.params)} | "
                      f"{f.rmse_before:.4g} | {f.rmse_after:.4g} | {f.gain_pct:.1f} % | "
                      f"{f.p_adjusted:.2g} |")
     if not result.findings:
@@ -243,9 +244,9 @@ def write_report(out_dir: str | Path, data: Measured, baseline, extended: Extend
             lines.append(f"\nFinding {f.rank} ({f.label}) is indistinguishable on the held-out "
                          f"blocks from **{a['label']}** (gain {a['gain_pct']:.1f} %): "
                          f"{_fmt_params(a['params'])}.")
-    lines += ["", "Held-out scheme: contiguous time blocks, interleaved folds with guard bands; "
-              "significance: Wilcoxon signed-rank over blockwise held-out MSE, Bonferroni over "
-              "all candidates.", ""]
+    lines += ["", "Held-out scheme: contiguous time blocks, each held out in turn (guard bands "
+              "around it); significance: Wilcoxon signed-rank over the blockwise held-out MSE, "
+              "Bonferroni over all candidates.", ""]
     for name, cap in figs:
         lines += [f"## {cap}", "", f"![{cap}]({name})", ""]
     md = out / "index.md"

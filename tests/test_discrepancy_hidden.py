@@ -118,3 +118,26 @@ def test_reference_models_miss_the_boost_volume_filling():
     top = res.findings[0]
     assert (top.effect, top.params["input"]) == ("input_dependence", "d/dt p2")
     assert top.params["coef"][0] > 0 and top.gain_pct > 30.0
+
+
+def test_cli_on_a_plant_csv_with_a_saved_baseline(baseline, tmp_path):
+    import json
+
+    from fdi_ros.cli import main
+
+    hidden = sc.draw("offset", 401)
+    data = sc.hide(sc.plant_record(401, duration_s=40.0), "offset", hidden)
+    names = ["t", "alpha"] + list(data.signals)
+    table = np.column_stack([data.t, data.alpha] + [data[k] for k in data.signals])
+    csv = tmp_path / "measured.csv"
+    np.savetxt(csv, table, delimiter=",", header=",".join(names), comments="", fmt="%.9g")
+    base = tmp_path / "baseline.json"
+    base.write_text(json.dumps(baseline.to_dict()))
+    out = tmp_path / "out.json"
+    assert main(["discrepancy", "--plant", "diesel", "--measured", str(csv), "--baseline",
+                 str(base), "--json", str(out), "--quiet"]) == 0
+    doc = json.loads(out.read_text())
+    top = doc["findings"][0]
+    assert (top["effect"], top["channel"]) == ("offset", "maf")
+    assert top["params"]["offset"] == pytest.approx(hidden["offset"], abs=0.3)
+    assert doc["verdict"] == "discrepant" and top["significant"]

@@ -34,8 +34,10 @@ def _liu_record(data_dir: str, minutes: float):
     from fdi_ros.core.measured import Measured, load_csv, segments_from_gaps
     from fdi_ros.core.meanvalue import LIU_ICE_FAULT_FREE, identify_liu_ice
 
-    mapping = "config/mappings/liu_ice.yaml"
-    d = Path(data_dir)
+    from fdi_ros.commands.discrepancy import LIU_MAPPING, _here_or_repo
+
+    mapping = _here_or_repo(LIU_MAPPING)
+    d = Path(_here_or_repo(data_dir))
     names = sorted(p.name for p in d.glob("*.csv"))
     if not names:
         raise FileNotFoundError(f"no LiU-ICE CSV files in {d}")

@@ -20,6 +20,15 @@ HELP = "find what the model gets wrong in measured data, name the cause, extend,
 LIU_DIR_DEFAULT = "../shared/data/liu_ice"
 LIU_MAPPING = "config/mappings/liu_ice.yaml"
 DIESEL_CACHE = Path("build/cache/discrepancy/diesel_baseline.json")
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _here_or_repo(path: str) -> str:
+    """A relative default path: from the working directory, else from the repository root."""
+    p = Path(path)
+    if p.is_absolute() or p.exists():
+        return str(p)
+    return str(REPO / p) if (REPO / p).exists() else str(p)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -95,8 +104,9 @@ def build_baseline(args, say):
     if args.plant == "liu_ice":
         from fdi_ros.core.meanvalue import LIU_ICE_FAULT_FREE, identify_liu_ice
 
-        mapping = args.mapping or LIU_MAPPING
-        files = args.ident or [str(Path(args.data_dir) / f) for f in LIU_ICE_FAULT_FREE]
+        mapping = args.mapping or _here_or_repo(LIU_MAPPING)
+        files = args.ident or [str(Path(_here_or_repo(args.data_dir)) / f)
+                               for f in LIU_ICE_FAULT_FREE]
         for f in files:
             if not Path(f).is_file():
                 raise FileNotFoundError(f"identification file {f} not found (give --ident or "
@@ -131,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(msg, flush=True)
 
-    mapping = args.mapping or (LIU_MAPPING if args.plant == "liu_ice" else None)
+    mapping = args.mapping or (_here_or_repo(LIU_MAPPING) if args.plant == "liu_ice" else None)
     data = load_measured(args.measured, mapping)
     if args.window:
         try:

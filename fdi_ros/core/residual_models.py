@@ -46,7 +46,9 @@ Factory = Callable[..., ResidualModel]
 _REGISTRY: dict[str, Factory] = {}
 # Modules that register the built-in kinds, imported on first use of the kind.
 _PROVIDERS = {"diesel_reference": "fdi_ros.core.diesel.symptoms",
-              "diesel_fault_hypothesis": "fdi_ros.core.diesel.symptoms"}
+              "diesel_fault_hypothesis": "fdi_ros.core.diesel.symptoms",
+              "turbofan_ts": "fdi_ros.core.turbofan.bank",
+              "discrepancy_extended": "fdi_ros.core.discrepancy.residual"}
 SPEC_FILES = ("residual_model.yaml", "residual_model.json")
 
 

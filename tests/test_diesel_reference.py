@@ -186,6 +186,16 @@ def test_fault_hypotheses_separate_faults_of_equal_signature(identified, tmp_pat
         other = next(k for k in shapes if k != truth)
         assert np.nanmedian(norms[truth]) < 0.75 * np.nanmedian(norms[other]), truth
     assert hyp["speedy"].size_estimate > 0.5
+    # Fault-free: no hypothesis explains a threshold's worth, none beats the nominal model.
+    from fdi_ros.core.diesel.symptoms import ReferenceResidualModel
+
+    clean_fv = _fvs(_synthetic(600, 77, period=200.0))
+    nominal = ReferenceResidualModel(models=res.models, config=cfg, window=150)
+    nom = np.array([nominal.residuals(fv).norm for fv in clean_fv])
+    for h in hyp.values():
+        hn = np.array([rv.norm for rv in h.stream(clean_fv)])
+        ok = np.isfinite(nom) & np.isfinite(hn)
+        assert np.all(hn[ok] >= nom[ok] + h.penalty - 1e-9)
     # The vectorised offline stream equals the segment-by-segment model.
     stream = faulty("speedy", 41, period=200.0)[:400]
     h = hyp["speedy"]

@@ -483,10 +483,9 @@ THRESHOLDS_FILE = "thresholds.json"
 # Segments over which bank models compute their norm (the nominal model and the fault
 # hypotheses must use the same window for their norms to be comparable).
 DEFAULT_WINDOW = 40
-# A hypothesis model must explain at least half a threshold (in block-RMS units) more than
-# the nominal model before its norm is the smaller one: its fitted size would otherwise
-# soak up the fault-free model errors.
-DEFAULT_PENALTY = 0.5
+# Norm added to a hypothesis model for its extra parameter (block-RMS units of thresholds);
+# a hypothesis also has to explain at least one threshold in some residual (min_effect).
+DEFAULT_PENALTY = 0.1
 
 
 def load_symptom_config(directory) -> SymptomConfig | None:
@@ -571,12 +570,14 @@ class FaultHypothesisResidualModel:
     ``z_k - s g_k``. A fault whose effect has the wrong shape across operating points cannot
     be explained by any ``s``: its norm stays large. ``norm`` is :func:`block_rms` of
     ``z - s g`` over the window plus ``penalty`` (the price of one parameter more than the
-    nominal model; ``z`` are residuals in units of their symptom thresholds).
+    nominal model; ``z`` are residuals in units of their symptom thresholds). If the fitted
+    effect ``s g`` stays below ``min_effect`` thresholds in every residual, nothing is
+    explained and the norm is that of ``z`` plus the penalty.
     """
 
     def __init__(self, *, models: ReferenceModelSet, config: SymptomConfig, fault: str,
                  directions: dict[str, object], model_id: str, window: int = 40,
-                 penalty: float = DEFAULT_PENALTY) -> None:
+                 penalty: float = DEFAULT_PENALTY, min_effect: float = 1.0) -> None:
         if config is None:
             raise ValueError("a fault-hypothesis model needs the fault-free residual scales")
         if int(window) < 1:
@@ -589,6 +590,7 @@ class FaultHypothesisResidualModel:
         self.model_id = model_id
         self.window = int(window)
         self.penalty = float(penalty)
+        self.min_effect = float(min_effect)
         self._buf: deque = deque(maxlen=self.window)
         self.size_estimate = 0.0
         self._qs = QuasiStationarity(config)
@@ -637,7 +639,11 @@ class FaultHypothesisResidualModel:
         den = float(np.sum(G * G))
         s = max(0.0, float(np.sum(G * Z)) / den) if den > 0 else 0.0
         self.size_estimate = s
-        norm = block_rms(Z - s * G) + self.penalty
+        # A hypothesis whose fitted effect stays below one threshold in every residual explains
+        # nothing a fault-free model could not: it keeps the unexplained norm (and so never
+        # beats the nominal model on fault-free data).
+        explains = float(np.max(np.abs(s * G.mean(axis=0)))) >= self.min_effect
+        norm = block_rms(Z - s * G if explains else Z) + self.penalty
         values = rv.values - s * g * np.asarray(self.config.threshold)
         return ResidualVector(**{**rv.__dict__, "values": values, "norm": norm})
 
@@ -676,7 +682,7 @@ class FaultHypothesisResidualModel:
             m.save(d / f"{name}.npz")
         (d / "hypothesis.json").write_text(json.dumps(
             {"fault": self.fault, "directions": sorted(self.directions),
-             "window": self.window, "penalty": self.penalty}))
+             "window": self.window, "penalty": self.penalty, "min_effect": self.min_effect}))
         return d
 
 
@@ -744,7 +750,7 @@ def _register() -> None:
     @register_residual_model("diesel_fault_hypothesis")
     def _make_hypothesis(spec: dict, *, base_dir: Path,
                          model_id: str) -> FaultHypothesisResidualModel:
-        unknown = set(spec) - {"path", "hypothesis", "window", "penalty"}
+        unknown = set(spec) - {"path", "hypothesis", "window", "penalty", "min_effect"}
         if unknown or "hypothesis" not in spec:
             raise ValueError("diesel_fault_hypothesis needs 'hypothesis:' (directory), "
                              f"optional path/window/penalty; unknown keys {sorted(unknown)}")
@@ -758,7 +764,8 @@ def _register() -> None:
             models=ReferenceModelSet.load(d), config=cfg, fault=fault, directions=directions,
             model_id=model_id,
             window=int(spec.get("window", meta.get("window", DEFAULT_WINDOW))),
-            penalty=float(spec.get("penalty", meta.get("penalty", DEFAULT_PENALTY))))
+            penalty=float(spec.get("penalty", meta.get("penalty", DEFAULT_PENALTY))),
+            min_effect=float(spec.get("min_effect", meta.get("min_effect", 1.0))))
 
 
 _register()

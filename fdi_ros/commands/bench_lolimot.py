@@ -18,7 +18,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from fdi_ros.commands.identify import DEFAULT_IDENT
 
     parser.add_argument("--data", default=DEFAULT_IDENT,
-                        help=f"identification data: scenario, bag or CSV (default {DEFAULT_IDENT})")
+                        help=f"identification data: scenario, bag or CSV "
+                             f"(default {DEFAULT_IDENT})")
     parser.add_argument("--mapping", default=None, help="mapping YAML for a CSV")
     parser.add_argument("--peer", default="hgb", choices=["hgb", "mlp"],
                         help="hgb: HistGradientBoostingRegressor; mlp: MLPRegressor")

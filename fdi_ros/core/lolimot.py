@@ -7,7 +7,8 @@ normalised Gaussian validity functions,
 
     \\hat y(x) = \\sum_{i=1}^{M} \\Phi_i(x)\\,\\bigl(w_{i0} + w_i^T z\\bigr), \\qquad
     \\Phi_i(x) = \\frac{\\mu_i(x)}{\\sum_j \\mu_j(x)}, \\qquad
-    \\mu_i(x) = \\exp\\Bigl(-\\tfrac12 \\sum_d \\bigl(\\tfrac{z_d - c_{id}}{\\sigma_{id}}\\bigr)^2\\Bigr),
+    \\mu_i(x) = \\exp\\Bigl(-\\tfrac12 \\sum_d
+        \\bigl(\\tfrac{z_d - c_{id}}{\\sigma_{id}}\\bigr)^2\\Bigr),
 
 where ``z`` are the inputs scaled to the unit hypercube of the training data, ``c_i`` the centre
 of hyper-rectangle ``i`` and ``sigma_i = k_sigma * (cell extent)``. Construction: start with one

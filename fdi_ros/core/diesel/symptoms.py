@@ -226,7 +226,7 @@ class SymptomGenerator:
     """Thresholds + debouncing, stateful per stream of ResidualVectors of the nominal model.
 
     ``update`` returns levels in the symptom order ``s_<residual>`` of the config's names
-    (:data:`SYMPTOMS` for the diesel plant, after reordering by :meth:`SymptomState.as_table_order`).
+    (:data:`SYMPTOMS` for the diesel plant after :meth:`SymptomState.as_table_order`).
     """
 
     config: SymptomConfig

@@ -11,3 +11,26 @@ import os
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
 os.environ.setdefault("MPLBACKEND", "Agg")
+
+
+import pytest  # noqa: E402
+
+from pathlib import Path  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="session")
+def diesel_bank() -> Path:
+    """The diesel graph's model bank (reference models, thresholds, fault hypotheses), built
+    once by the same code as `fdi-ros build-bank` when missing or stale; returns the config."""
+    from fdi_ros.modelbank import ensure_bank
+
+    config = ROOT / "config" / "diesel.yaml"
+    ensure_bank(config, progress=False, log=lambda s: None)
+    return config
+
+
+@pytest.fixture(scope="session")
+def diesel_reference_dir(diesel_bank: Path) -> Path:
+    return ROOT / "build" / "models" / "diesel"

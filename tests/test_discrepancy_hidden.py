@@ -103,18 +103,13 @@ def test_two_hidden_effects_both_found(baseline):
     assert found["missing_harmonic"]["order"] == h["order"]
 
 
-REFERENCE_DIR = "build/models/diesel"
-
-
-@pytest.mark.skipif(not __import__("pathlib").Path(REFERENCE_DIR, "reference_models.json")
-                    .is_file(), reason=f"no reference models in {REFERENCE_DIR} (made by "
-                                       "`fdi-ros identify`)")
-def test_reference_models_miss_the_boost_volume_filling():
+def test_reference_models_miss_the_boost_volume_filling(diesel_reference_dir):
     """The project's static eta_V reference (paper eq. 3) has no storage term: on a transient
     cycle the MAF residual follows dp2/dt (air stored in the boost volume)."""
     from fdi_ros.core.discrepancy.reference_baseline import DieselReferenceBaseline
 
-    res, _ = discover(sc.plant_record(201), DieselReferenceBaseline(path=REFERENCE_DIR))
+    res, _ = discover(sc.plant_record(201),
+                      DieselReferenceBaseline(path=str(diesel_reference_dir)))
     top = res.findings[0]
     assert (top.effect, top.params["input"]) == ("input_dependence", "d/dt p2")
     assert top.params["coef"][0] > 0 and top.gain_pct > 30.0

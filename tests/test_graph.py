@@ -28,15 +28,7 @@ KILLED = "crankcase_vent_open"
 
 
 @pytest.fixture(scope="module")
-def bank():
-    from fdi_ros.modelbank import ensure_bank
-
-    ensure_bank(CONFIG, progress=False)
-    return CONFIG
-
-
-@pytest.fixture(scope="module")
-def live(bank, tmp_path_factory):
+def live(diesel_bank, tmp_path_factory):
     out = tmp_path_factory.mktemp("live") / "bag"
     killed: dict = {}
 

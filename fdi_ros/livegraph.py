@@ -29,6 +29,8 @@ class LiveRun:
     detection_t: float = math.nan
     isolation_t: float = math.nan
     isolated_faults: tuple[str, ...] = ()
+    isolations: list[dict] = field(default_factory=list)
+    cleared_detections: list[float] = field(default_factory=list)
     switches: list[dict] = field(default_factory=list)
     lifecycle_after: dict[str, str] = field(default_factory=dict)
     segments: int = 0
@@ -47,7 +49,9 @@ class LiveRun:
             "detection_delay_s": r(self.detection_t - self.fault_onset),
             "isolation_s": r(self.isolation_t),
             "isolation_delay_s": r(self.isolation_t - self.fault_onset),
-            "isolated_faults": list(self.isolated_faults), "bank_switches": self.switches,
+            "isolated_faults": list(self.isolated_faults), "isolations": self.isolations,
+            "cleared_detections_s": [round(x, 4) for x in self.cleared_detections],
+            "bank_switches": self.switches,
             "lifecycle_states_after": self.lifecycle_after, "segments": self.segments,
             "plant_time_s": r(self.final_t), "wall_s": r(self.wall_s), "bag": self.bag,
         }
@@ -80,8 +84,9 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
     from it). Returns the run summary and the (closed) watcher with everything it saw.
     """
     readers = 1 + (record is not None) + bool(watch_blocks)
+    # the bank is on line before the plant starts (checked below), so no start delay
     over: dict[str, dict] = {"fdi_plant": {"realtime_factor": realtime_factor,
-                                           "min_subscribers": readers},
+                                           "min_subscribers": readers, "start_delay_s": 0.0},
                              "fdi_replayer": {"rate": realtime_factor,
                                               "min_subscribers": readers}}
     if scenario is not None:
@@ -103,6 +108,7 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
         last_state = ""
         online: tuple[str, ...] = ()
         seen_switch = 0
+        episode = math.nan
         while time.monotonic() < deadline:
             w.executor.spin_once(timeout_sec=0.05)
             if during is not None:
@@ -121,10 +127,25 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
                         f"{d.min_residual_model or '-'}; F* = {d.fault_model}; candidates "
                         f"{list(d.candidate_faults)}")
                     last_state = d.state
-                if not math.isnan(d.detection_time) and math.isnan(run.detection_t):
-                    run.detection_t = d.detection_time
-                if d.state == "isolated" and math.isnan(run.isolation_t):
-                    run.isolation_t, run.isolated_faults = d.isolation_time, d.isolated_faults
+                # detection episodes: the one that leads to the first isolation is the
+                # detection; those the hold time T0 rejected are reported as cleared
+                if d.state == "detected" and math.isnan(episode):
+                    episode = d.t
+                elif d.state == "no_fault" and not math.isnan(episode):
+                    run.cleared_detections.append(episode)
+                    episode = math.nan
+                if d.state == "isolated" and (not run.isolations or
+                                              run.isolations[-1]["model"] != d.fault_model):
+                    run.isolations.append({"t": round(d.isolation_time, 4),
+                                           "model": d.fault_model,
+                                           "detected_t": None if math.isnan(episode)
+                                           else round(episode, 4)})
+                    if math.isnan(run.isolation_t):
+                        run.isolation_t, run.isolated_faults = d.isolation_time, \
+                            d.isolated_faults
+                        run.detection_t = episode if not math.isnan(episode) \
+                            else d.detection_time
+                    episode = math.nan
                 if online and d.models_online != online:
                     sw = {"t": round(d.t, 4), "off_line": sorted(set(online) -
                                                                   set(d.models_online)),

@@ -10,7 +10,8 @@ and by the scenario; each fault that takes effect is published on ``/fdi/fault_t
 
 Parameters: ``plant``, ``scenario`` (YAML path), ``seed``, ``realtime_factor`` (1.0),
 ``publish_clock`` (true), ``max_blocks_per_tick`` (bounds a catch-up burst),
-``min_subscribers`` (1: wait for the preprocessor before plant time starts).
+``min_subscribers`` (1: wait for the preprocessor before plant time starts),
+``start_delay_s`` (0: further wall seconds before plant time starts).
 """
 
 from __future__ import annotations
@@ -57,6 +58,11 @@ class PlantNode(Node):
         self._wall0: float | None = None
         self._t0 = self.runner.t
         self._min_subs = int(p("min_subscribers").value)
+        self.declare_parameter("start_delay_s", 0.0, ParameterDescriptor(
+            description="wall seconds to wait, once the readers are matched, before plant time "
+                        "starts (time for a large bank to come on line under `fdi-ros launch`)"))
+        self._delay = float(p("start_delay_s").value)
+        self._ready_at: float | None = None
         self._finished = False
         self.create_timer(0.01, self._tick)
         self.get_logger().info(f"plant {self.runner.plant!r} ready, scenario "
@@ -73,8 +79,13 @@ class PlantNode(Node):
     def _tick(self) -> None:
         if self._finished:
             return
-        if self._wall0 is None and self._pub.get_subscription_count() < self._min_subs:
-            return
+        if self._wall0 is None:
+            if self._pub.get_subscription_count() < self._min_subs:
+                return
+            if self._ready_at is None:
+                self._ready_at = time.monotonic() + self._delay
+            if time.monotonic() < self._ready_at:
+                return
         now = time.monotonic()
         if self._wall0 is None:
             self._wall0 = now

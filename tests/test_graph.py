@@ -1,5 +1,5 @@
-"""The live graph over real DDS, each node its own process: a fault injected into the diesel
-plant is detected from the symptoms topic, isolated by the supervisor, the bank switched
+"""The live graph over real DDS, each node its own process: a fault injected at run time into
+the diesel plant (on /fdi/fault_inject) is detected from the symptoms topic, isolated by the supervisor, the bank switched
 through the lifecycle services (checked with get_state), reported on /diagnostics; a killed
 model node is reported and the diagnosis goes on; the recorded bag replayed through the graph,
 and diagnosed offline, gives the same answer."""
@@ -29,21 +29,37 @@ KILLED = "crankcase_vent_open"
 
 @pytest.fixture(scope="module")
 def live(diesel_bank, tmp_path_factory):
-    out = tmp_path_factory.mktemp("live") / "bag"
-    killed: dict = {}
+    import yaml
 
-    def kill_one_model(graph, w, run):
-        # Kill a bank model's process 2 s into the run (before the fault).
+    from fdi_ros.core.types import FaultEvent
+
+    tmp = tmp_path_factory.mktemp("live")
+    out = tmp / "bag"
+    # The demo scenario without its scheduled fault: the leak is injected at run time instead,
+    # on /fdi/fault_inject from this process.
+    sc = yaml.safe_load(SCENARIO.read_text())
+    sc.pop("faults")
+    scenario = tmp / "no_fault.yaml"
+    scenario.write_text(yaml.safe_dump(sc))
+    done: dict = {}
+
+    def inject_and_kill(graph, w, run):
         d = w.last_diagnosis()
-        if not killed and d is not None and d.t >= 2.0:
+        if d is None:
+            return
+        if "inject" not in done and d.t >= 1.0:
+            w.inject(FaultEvent(t=ONSET, fault="leak_ic_engine", size=5.0, size_unit="mm"))
+            done["inject"] = d.t
+        if "t" not in done and d.t >= 2.0:
+            # kill a bank model's process 2 s into the run (before the fault)
             graph.kill(graph.cfg.entry(KILLED).node_name)
-            killed["t"] = d.t
-            killed["n_diag"] = len(w.seen.diagnoses)
+            done["t"] = d.t
+            done["n_diag"] = len(w.seen.diagnoses)
 
     lines: list[str] = []
-    run, w = run_live(CONFIG, scenario=SCENARIO, record=out, during=kill_one_model,
+    run, w = run_live(CONFIG, scenario=scenario, record=out, during=inject_and_kill,
                       timeout_s=150, log=lines.append)
-    return run, w, out, killed, lines
+    return run, w, out, done, lines
 
 
 def test_symptom_arrives_within_a_few_segments(live):

@@ -49,7 +49,7 @@ class BagWriter:
         self._conns: dict[tuple[str, str], Any] = {}
         self.count = 0
 
-    def __enter__(self) -> "BagWriter":
+    def __enter__(self) -> BagWriter:
         return self
 
     def __exit__(self, *exc: object) -> None:

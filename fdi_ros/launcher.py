@@ -112,7 +112,7 @@ class Graph:
         raise KeyError(name)
 
     # -- processes ----------------------------------------------------------------------------
-    def start(self, *, exclude: tuple[str, ...] = ()) -> "Graph":
+    def start(self, *, exclude: tuple[str, ...] = ()) -> Graph:
         """Start every node not yet started (except ``exclude``: start those later with
         :meth:`start_node`, e.g. the plant once the bank is on line)."""
         for n in self.nodes:
@@ -173,7 +173,7 @@ class Graph:
         shutil.rmtree(self._tmp, ignore_errors=True)
         return {n.name: (n.proc.returncode if n.proc else None) for n in self.nodes}
 
-    def __enter__(self) -> "Graph":
+    def __enter__(self) -> Graph:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:

@@ -64,9 +64,8 @@ def _missing(cfg: GraphConfig) -> list[tuple[str, dict]]:
         elif spec.get("type") == "diesel_fault_hypothesis":
             if not _hypothesis_current(spec):
                 out.append((e.id, spec))
-        elif spec.get("type") == "turbofan_ts":
-            if not Path(spec["path"]).exists():
-                out.append((e.id, spec))
+        elif spec.get("type") == "turbofan_ts" and not Path(spec["path"]).exists():
+            out.append((e.id, spec))
     return out
 
 
@@ -91,8 +90,12 @@ def ensure_bank(config: str | Path | GraphConfig, *, progress: bool = True, seed
     if cfg.plant != "diesel":
         raise ValueError(f"models missing for {[m for m, _ in todo]}: no builder for plant "
                          f"{cfg.plant!r}")
-    from fdi_ros.commands.identify import (DEFAULT_DRIVE, DEFAULT_IDENT, build_models,
-                                           simulate_features)
+    from fdi_ros.commands.identify import (
+        DEFAULT_DRIVE,
+        DEFAULT_IDENT,
+        build_models,
+        simulate_features,
+    )
     from fdi_ros.core.diesel.plant import FAULT_UNITS
     from fdi_ros.core.diesel.reference import ReferenceModelSet
     from fdi_ros.core.diesel.symptoms import identify_fault_hypothesis, load_symptom_config

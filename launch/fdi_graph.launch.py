@@ -5,10 +5,11 @@ graph configuration and the same code as ``fdi-ros launch`` (fdi_ros.launcher.Gr
 two cannot drift apart.
 """
 
-from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
+
+from launch import LaunchDescription
 
 
 def _nodes(context):

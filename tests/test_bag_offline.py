@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from ros_helpers import PROCS
 
 sys.path.insert(0, str(PROCS))

@@ -5,8 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fdi_ros.core.crank import (FEATURE_NAMES, CrankSegmenter, crank_harmonics,
-                                segment_features, segment_table)
+from fdi_ros.core.crank import (
+    FEATURE_NAMES,
+    CrankSegmenter,
+    crank_harmonics,
+    segment_features,
+    segment_table,
+)
 from fdi_ros.core.types import SampleBlock
 
 CH = ("n", "p2", "T2", "maf")

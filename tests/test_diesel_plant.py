@@ -9,8 +9,14 @@ import numpy as np
 import pytest
 
 from fdi_ros.core.crank import segment_table
-from fdi_ros.core.diesel.plant import (CHANNELS, FAULT_IDS, UNITS, DieselIntakePlant,
-                                       DieselParams, fuel_for_torque)
+from fdi_ros.core.diesel.plant import (
+    CHANNELS,
+    FAULT_IDS,
+    UNITS,
+    DieselIntakePlant,
+    DieselParams,
+    fuel_for_torque,
+)
 from fdi_ros.core.diesel.scenario import load_cases, load_scenario, simulate
 from fdi_ros.core.types import FaultEvent
 

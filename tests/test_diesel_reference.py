@@ -8,11 +8,21 @@ import json
 import numpy as np
 import pytest
 
-from fdi_ros.core.diesel.reference import (INPUTS, OUTPUTS, IdentificationConfig,
-                                           ReferenceModelSet, feature_table,
-                                           identify_reference_models, wrap_phase)
-from fdi_ros.core.diesel.symptoms import (RESIDUALS, THRESHOLDS_FILE, calibrate_thresholds,
-                                          parity_residuals)
+from fdi_ros.core.diesel.reference import (
+    INPUTS,
+    OUTPUTS,
+    IdentificationConfig,
+    ReferenceModelSet,
+    feature_table,
+    identify_reference_models,
+    wrap_phase,
+)
+from fdi_ros.core.diesel.symptoms import (
+    RESIDUALS,
+    THRESHOLDS_FILE,
+    calibrate_thresholds,
+    parity_residuals,
+)
 from fdi_ros.core.residual_models import load_residual_model
 from fdi_ros.core.types import FeatureVector
 

@@ -13,12 +13,20 @@ import pytest
 
 from fdi_ros.core.discrepancy import DiscrepancyConfig, ExtendedModel, analyse
 from fdi_ros.core.discrepancy.context import ChannelContext, orifice_flux
-from fdi_ros.core.discrepancy.effects import (DeadTime, GainError, InputDependence,
-                                              MissingHarmonic, Offset, SensorLag, delay,
-                                              effect_from_dict, lowpass)
+from fdi_ros.core.discrepancy.effects import (
+    DeadTime,
+    GainError,
+    InputDependence,
+    MissingHarmonic,
+    Offset,
+    SensorLag,
+    delay,
+    effect_from_dict,
+    lowpass,
+)
 from fdi_ros.core.discrepancy.engine import loss_differential_p, paired_p
-from fdi_ros.core.measured import Measured
 from fdi_ros.core.meanvalue import SpeedDensityModel
+from fdi_ros.core.measured import Measured
 
 
 def _ctx(y, yhat, t, **kw):

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from ros_helpers import PROCS, RosHarness, spawn, spawn_script, stop
 
 sys.path.insert(0, str(PROCS))

@@ -1,8 +1,8 @@
 """The live graph over real DDS, each node its own process: a fault injected at run time into
-the diesel plant (on /fdi/fault_inject) is detected from the symptoms topic, isolated by the supervisor, the bank switched
-through the lifecycle services (checked with get_state), reported on /diagnostics; a killed
-model node is reported and the diagnosis goes on; the recorded bag replayed through the graph,
-and diagnosed offline, gives the same answer."""
+the diesel plant (on /fdi/fault_inject) is detected from the symptoms topic, isolated by the
+supervisor, the bank switched through the lifecycle services (checked with get_state),
+reported on /diagnostics; a killed model node is reported and the diagnosis goes on; the
+recorded bag replayed through the graph, and diagnosed offline, gives the same answer."""
 
 from __future__ import annotations
 

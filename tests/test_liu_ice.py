@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from fdi_ros.core.discrepancy import discover
-from fdi_ros.core.measured import load_csv
 from fdi_ros.core.meanvalue import LIU_ICE_FAULT_FREE, identify_liu_ice
+from fdi_ros.core.measured import load_csv
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "liu_ice"
@@ -91,7 +91,8 @@ def test_cli_writes_json_report_and_model(tmp_path):
 def test_missing_samples_and_gaps_are_masked(model, tmp_path):
     import csv
 
-    rows = list(csv.reader(open(DATA / "wltp_f_iml_6mm.csv")))
+    with open(DATA / "wltp_f_iml_6mm.csv") as fh:
+        rows = list(csv.reader(fh))
     hdr, body = rows[0], rows[1:]
     col = hdr.index("air_mass_flow")
     for i in range(500, 540):

@@ -7,8 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from fdi_ros.core.supervisor import (BankModel, ExpertSupervisor, fault_type, models_online,
-                                     sized_bank)
+from fdi_ros.core.supervisor import (
+    BankModel,
+    ExpertSupervisor,
+    fault_type,
+    models_online,
+    sized_bank,
+)
 from fdi_ros.core.types import ResidualVector
 
 BANK = sized_bank(("fan", "hub"))

@@ -5,9 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fdi_ros.core.diesel.symptoms import (PAPER_TABLE, RESIDUALS, SYMPTOMS, SymptomConfig,
-                                          SymptomGenerator, calibrate_thresholds, isolate,
-                                          load_fault_symptom_tables, moving_average)
+from fdi_ros.core.diesel.symptoms import (
+    PAPER_TABLE,
+    RESIDUALS,
+    SYMPTOMS,
+    SymptomConfig,
+    SymptomGenerator,
+    calibrate_thresholds,
+    isolate,
+    load_fault_symptom_tables,
+    moving_average,
+)
 from fdi_ros.core.residual_models import load_residual_model, registered_types
 from fdi_ros.core.types import ResidualVector
 

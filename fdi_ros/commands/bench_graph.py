@@ -2,7 +2,8 @@
 
 Runs the diesel graph (7 residual-generator processes + plant, preprocessor, supervisor) in
 real time at 3600 rpm (120 segments/s; at 3900-4000 rpm the
-reference models are at the edge of their identified region) with a leak switched on and off four times, and
+reference models are at the edge of their identified region) with a leak switched on and
+off four times, and
 measures from a watcher process:
 
 * ``onset_to_symptom``: wall time from the arrival of the sensor block that carries a fault

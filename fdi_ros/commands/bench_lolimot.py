@@ -49,9 +49,19 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from fdi_ros.commands.identify import load_features
-    from fdi_ros.core.diesel.reference import (AMPLITUDE_OF, INPUTS, OUTPUTS, PERIOD_DEG,
-                                               PHASES, IdentificationConfig, branch_centre,
-                                               feature_table, nrmse, split_blocks, wrap_phase)
+    from fdi_ros.core.diesel.reference import (
+        AMPLITUDE_OF,
+        INPUTS,
+        OUTPUTS,
+        PERIOD_DEG,
+        PHASES,
+        IdentificationConfig,
+        branch_centre,
+        feature_table,
+        nrmse,
+        split_blocks,
+        wrap_phase,
+    )
 
     if args.repeat < 1:
         raise ValueError("--repeat must be >= 1")

@@ -39,8 +39,7 @@ def run(args: argparse.Namespace) -> int:
 
     from fdi_ros.core.turbofan import bank as tfb
     from fdi_ros.core.turbofan import plant as tfp
-    from fdi_ros.core.turbofan.models import (NORM_OFFSET, NORM_SCALE, GridSpec,
-                                              train_global)
+    from fdi_ros.core.turbofan.models import NORM_OFFSET, NORM_SCALE, GridSpec, train_global
     from fdi_ros.core.turbofan.tsfuzzy import fit_ts, initial_model
     from fdi_ros.core.types import FeatureVector
 

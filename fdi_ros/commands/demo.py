@@ -137,8 +137,8 @@ def plot_residuals_symptoms(bag_dir: Path, path: Path, live) -> Path:
     axes[-1].legend(loc="upper left", fontsize=7, ncol=5)
     axes[-1].set_xlabel("plant time [s]")
     for ax in axes:
-        for x, c, lab in [(live.fault_onset, "k", "fault"), (live.detection_t, "C1", "detected"),
-                          (live.isolation_t, "C2", "isolated")]:
+        for x, c in [(live.fault_onset, "k"), (live.detection_t, "C1"),
+                     (live.isolation_t, "C2")]:  # fault, detected, isolated
             if x == x:
                 ax.axvline(x, color=c, lw=0.8, ls="--")
     axes[0].set_title(f"diesel intake, 2000 rpm / 130 Nm: 5 mm leak intercooler -> engine at "

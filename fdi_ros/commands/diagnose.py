@@ -56,7 +56,7 @@ def features_of_bag(path: str | Path) -> tuple[str, list]:
 def summarise(steps: list, plant_seconds: float, wall_seconds: float, truth: list) -> dict:
     events, last_state, last_online = [], None, None
     first_symptom: dict[str, float] = {}
-    for fv, _res, step in steps:
+    for _fv, _res, step in steps:
         d = step.diagnosis
         if d.state != last_state:
             events.append({"t": round(d.t, 4), "index": d.index, "state": d.state,

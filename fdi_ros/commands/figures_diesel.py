@@ -20,7 +20,8 @@ HELP = "save the diesel plant figures (MAF segment fit, identification-cycle cov
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out-dir", default="figures", help="directory for the PNGs")
     parser.add_argument("--scenario", default=None,
-                        help="identification scenario (default config/scenarios/diesel_ident.yaml)")
+                        help="identification scenario "
+                             "(default config/scenarios/diesel_ident.yaml)")
     parser.add_argument("--seed", type=int, default=None, help="noise seed override")
 
 

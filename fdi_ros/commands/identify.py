@@ -174,8 +174,13 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
                  figures=None):
     """Identify, save, calibrate the fault-free thresholds; returns (result, symptom config or
     None, report dict)."""
-    from fdi_ros.core.diesel.reference import (INPUTS, OUTPUTS, IdentificationConfig,
-                                               feature_table, identify_reference_models)
+    from fdi_ros.core.diesel.reference import (
+        INPUTS,
+        OUTPUTS,
+        IdentificationConfig,
+        feature_table,
+        identify_reference_models,
+    )
     from fdi_ros.core.diesel.symptoms import THRESHOLDS_FILE
 
     cfg = config or IdentificationConfig(seed=seed)

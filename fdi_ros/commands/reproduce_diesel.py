@@ -160,8 +160,13 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from fdi_ros.commands.identify import DEFAULT_DRIVE, load_features
-    from fdi_ros.core.diesel.symptoms import (PAPER_TABLE, isolate, load_fault_symptom_tables,
-                                              run_symptoms, signature_string)
+    from fdi_ros.core.diesel.symptoms import (
+        PAPER_TABLE,
+        isolate,
+        load_fault_symptom_tables,
+        run_symptoms,
+        signature_string,
+    )
 
     progress = not args.no_progress
     if args.drive_minutes <= 0:

@@ -13,8 +13,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
-from pathlib import Path
 import sys
+from pathlib import Path
 
 COMMAND = ("reproduce", "turbofan")
 HELP = "reproduce the turbofan fault diagnosis of Diao & Passino (2004): 4 cases, T0 sweep"

@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         from fdi_ros import bag
         writer = bag.BagWriter(args.out)
-    fh = open(args.csv, "w") if args.csv else None
+    fh = open(args.csv, "w") if args.csv else None  # noqa: SIM115 (closed in finally)
     seg = CrankSegmenter(V_D=sc.params.V_D, R=sc.params.R) if args.features else None
     bar = None
     if args.progress:

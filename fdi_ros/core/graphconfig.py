@@ -110,5 +110,5 @@ def load_graph_config(path: str | Path) -> GraphConfig:
                       stale_s=float(g.get("stale_s", math.inf)),
                       node_timeout_s=float(g.get("node_timeout_s", 2.0)),
                       node_params=node_params)
-    cfg.bank_models  # validates fault sets
+    _ = cfg.bank_models  # validates the fault sets (one size per fault type and model)
     return cfg

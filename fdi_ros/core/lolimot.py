@@ -283,7 +283,7 @@ class Lolimot:
     def _split(self, Z, w, lo, hi, i, d):
         """Halve cell ``i`` along input ``d``; None if a half holds too few samples."""
         mid = 0.5 * (lo[i, d] + hi[i, d])
-        inside = np.all((Z >= lo[i]) & (Z <= hi[i]), axis=1)
+        inside = np.all((lo[i] <= Z) & (hi[i] >= Z), axis=1)
         n_left = float(np.sum(w[inside & (Z[:, d] < mid)]))
         if min(n_left, float(np.sum(w[inside])) - n_left) < self.min_samples_per_model:
             return None

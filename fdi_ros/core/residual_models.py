@@ -133,5 +133,4 @@ def load_residual_model(path_or_spec, *, model_id: str) -> ResidualModel:
 
 
 # Generic symptom logic re-exported here (imported last: that module registers its kinds here).
-from fdi_ros.core.diesel.symptoms import (  # noqa: E402
-    SymptomConfig, SymptomGenerator, SymptomState, isolate)
+from fdi_ros.core.diesel.symptoms import SymptomConfig, SymptomGenerator, SymptomState, isolate  # noqa: E402

@@ -44,9 +44,9 @@ a first isolation that picked too large a size can still be corrected.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-import math
 
 from fdi_ros.core.types import Diagnosis, ResidualVector
 

@@ -37,7 +37,8 @@ class SampleBlock:
         n = self.t.shape[0]
         if self.values.shape != (len(self.channels), n):
             raise ValueError(
-                f"values shape {self.values.shape} != (channels {len(self.channels)}, samples {n})")
+                f"values shape {self.values.shape} != "
+                f"(channels {len(self.channels)}, samples {n})")
         if len(self.units) != len(self.channels):
             raise ValueError("one unit per channel is required")
         if self.alpha.size not in (0, n):

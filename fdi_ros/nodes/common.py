@@ -44,9 +44,11 @@ def run_node(make_node: Callable[[], Any], *, executor_threads: int = 1,
     """
     ensure_loopback_env()
     import rclpy
-    from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,
-                                 SingleThreadedExecutor)
-
+    from rclpy.executors import (
+        ExternalShutdownException,
+        MultiThreadedExecutor,
+        SingleThreadedExecutor,
+    )
     from rclpy.signals import SignalHandlerOptions
 
     # Our own SIGINT/SIGTERM handling: stop spinning, then drain what DDS already delivered

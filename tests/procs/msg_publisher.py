@@ -3,10 +3,11 @@
 
 import rclpy
 from rclpy.node import Node
-
-from fdi_ros.msgs import TOPICS, MessageFactory
-from fdi_ros.nodes.common import DATA_QOS
 from sample_messages import sample_records
+
+from fdi_ros.msgs import MessageFactory
+from fdi_ros.nodes.common import DATA_QOS
+
 
 def main() -> None:
     rclpy.init()

@@ -5,11 +5,26 @@
 ``reference`` / ``symptoms``  reference models and symptom logic (identification side)
 """
 
-from fdi_ros.core.diesel.plant import (CHANNELS, FAULT_IDS, FAULT_UNITS, PLANT_ID, UNITS,
-                                       DieselIntakePlant, DieselParams, boost_setpoint,
-                                       eta_true, fuel_for_torque)
-from fdi_ros.core.diesel.scenario import (Scenario, SimResult, iter_simulate, load_cases,
-                                          load_scenario, simulate)
+from fdi_ros.core.diesel.plant import (
+                                       CHANNELS,
+                                       FAULT_IDS,
+                                       FAULT_UNITS,
+                                       PLANT_ID,
+                                       UNITS,
+                                       DieselIntakePlant,
+                                       DieselParams,
+                                       boost_setpoint,
+                                       eta_true,
+                                       fuel_for_torque,
+)
+from fdi_ros.core.diesel.scenario import (
+                                       Scenario,
+                                       SimResult,
+                                       iter_simulate,
+                                       load_cases,
+                                       load_scenario,
+                                       simulate,
+)
 
 __all__ = ["CHANNELS", "FAULT_IDS", "FAULT_UNITS", "PLANT_ID", "UNITS", "DieselIntakePlant",
            "DieselParams", "Scenario", "SimResult", "boost_setpoint", "eta_true",

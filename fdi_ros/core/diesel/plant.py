@@ -1,4 +1,4 @@
-"""Mean-value intake model of a 2.0 L 4-cylinder turbocharged DI diesel with crank-resolved outputs.
+"""Mean-value intake model of a 2.0 L 4-cylinder turbocharged DI diesel, crank-resolved outputs.
 
 The plant of Schwarte & Isermann (IFAC 2002): an Opel 2.0 L DTI (74 kW, 205 Nm) with EGR and
 swirl flaps. Air path, in flow direction::
@@ -66,8 +66,8 @@ no crank-angle pulsation; the engine speed is an input (no torsional oscillation
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields
-from typing import Callable
 
 import numpy as np
 
@@ -337,12 +337,12 @@ class _FaultSchedule:
         self.events.sort(key=lambda e: e.t)
 
     def sizes(self, t: float) -> dict[str, float]:
-        out = {k: 0.0 for k in FAULT_IDS}
+        out = dict.fromkeys(FAULT_IDS, 0.0)
         for ev in self.events:
             if ev.t > t:
                 break
             if not ev.fault:
-                out = {k: 0.0 for k in FAULT_IDS}
+                out = dict.fromkeys(FAULT_IDS, 0.0)
                 continue
             if not ev.active:
                 out[ev.fault] = 0.0
@@ -445,7 +445,7 @@ class DieselIntakePlant:
         self._x["E"] = 0.5 * p.J_tc * 12000.0 ** 2
         # settle the slow states (the first seconds of a warm engine at this point)
         for _ in range(int(8.0 / p.dt)):
-            self._step(0.0, inp, {k: 0.0 for k in FAULT_IDS}, record=False)
+            self._step(0.0, inp, dict.fromkeys(FAULT_IDS, 0.0), record=False)
         self._x["T2s"] = self._T2_last
         self._initialised = True
 
@@ -612,7 +612,8 @@ class DieselIntakePlant:
         if not record:
             return None
         return dict(t=t, n=inp["n"], fuel=inp["fuel"], egr_cmd=inp["egr_cmd"],
-                    swirl_cmd=inp["swirl_cmd"], vgt_cmd=u, vgt_pos=x["vgt"], p1=p1_used, p_co=a["p_co"], p_ic=a["p_ic"], p2=p2, p3=a["p3"],
+                    swirl_cmd=inp["swirl_cmd"], vgt_cmd=u, vgt_pos=x["vgt"], p1=p1_used,
+                    p_co=a["p_co"], p_ic=a["p_ic"], p2=p2, p3=a["p3"],
                     p4=a["p4"], T_ic=x["T_ic"], T2=a["T2_mix"], T2s=x["T2s"], T3=a["T3"],
                     m_maf=m_maf, m_c=m_c, m_vent=m_vent, m_bb=m_bb_in, m_leak=a["m_leak"],
                     m_d=a["m_d"], m_cyl=a["m_cyl"], m_egr=a["m_egr"], m_t=a["m_t"],

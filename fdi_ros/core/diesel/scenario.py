@@ -37,14 +37,22 @@ the top-level keys); :func:`load_scenario` takes ``case=`` to pick one, and
 from __future__ import annotations
 
 import copy
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Mapping
+from typing import Any
 
 import numpy as np
 
-from fdi_ros.core.diesel.plant import (CHANNELS, FAULT_IDS, FAULT_UNITS, UNITS,
-                                       DieselIntakePlant, DieselParams, fuel_for_torque)
+from fdi_ros.core.diesel.plant import (
+    CHANNELS,
+    FAULT_IDS,
+    FAULT_UNITS,
+    UNITS,
+    DieselIntakePlant,
+    DieselParams,
+    fuel_for_torque,
+)
 from fdi_ros.core.types import FaultEvent, SampleBlock
 
 _TOP_KEYS = {"name", "description", "seed", "duration_s", "dalpha_deg", "block_deg", "inputs",
@@ -344,7 +352,7 @@ def simulate(scenario, *, seed: int | None = None, progress: bool = False,
         from tqdm import tqdm
         bar = tqdm(total=round(sc.duration_s, 3), unit="s", desc=sc.name)
     plant = None
-    for block, plant in iter_simulate(sc, seed=sd, noise=noise):
+    for block, plant in iter_simulate(sc, seed=sd, noise=noise):  # noqa: B007 (kept: last)
         if keep_blocks:
             blocks.append(block)
         if seg is not None:

@@ -826,7 +826,7 @@ def calibrate_from_fault_free(models: ReferenceModelSet, features: Sequence[Feat
                           rate_lag=rate_lag)
     rvs = stream_residuals(models, feats, config=probe)   # static, not gated
     qs = QuasiStationarity(probe)
-    x, r, keep = [], [], []
+    x, r = [], []
     for fv, rv in zip(feats, rvs):
         dn, dp = qs.rates(fv)
         if rv.valid and np.isfinite(dp):

@@ -12,8 +12,14 @@ from dataclasses import replace
 
 from fdi_ros.core.discrepancy.context import ChannelContext, LeakSpec, build_contexts
 from fdi_ros.core.discrepancy.effects import CATALOGUE, EFFECT_TYPES, Effect
-from fdi_ros.core.discrepancy.engine import (DiscrepancyConfig, DiscrepancyResult, Finding,
-                                             analyse, apply_chain, merge_results)
+from fdi_ros.core.discrepancy.engine import (
+    DiscrepancyConfig,
+    DiscrepancyResult,
+    Finding,
+    analyse,
+    apply_chain,
+    merge_results,
+)
 from fdi_ros.core.discrepancy.model import ExtendedModel, baseline_from_dict
 from fdi_ros.core.measured import Measured, segment_means
 

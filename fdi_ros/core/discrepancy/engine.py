@@ -5,10 +5,12 @@ Procedure for each channel (greedy forward selection, at most ``max_findings`` s
 1. The valid samples are cut into contiguous blocks of equal duration (about 5 s, at least
    24 blocks). In ``n_folds`` refits (default: one per block), fold k holds out the blocks
    k, k + n_folds, ...; the extensions are fitted on the other blocks minus a guard band of
-   ``guard_s`` on each side of every held-out block (the residuals of 20 Hz data are strongly autocorrelated, so a
-   training sample right next to the held-out block would leak its value into the test).
+   ``guard_s`` on each side of every held-out block (the residuals of 20 Hz data are strongly
+   autocorrelated, so a training sample right next to the held-out block would leak its value
+   into the test).
 2. For every candidate (every catalogue effect, every explaining column, always on, after an
-   onset time, or piecewise constant in time) the out-of-block predictions give per block the held-out mean squared error
+   onset time, or piecewise constant in time) the out-of-block predictions give per block the
+   held-out mean squared error
    before (current model, refitted per fold) and after (current model + candidate).
 3. Significance: one-sided Wilcoxon signed-rank test on the blockwise differences
    ``d_b = MSE_before_b - MSE_after_b`` (zero differences dropped). Blocks, not samples, are

@@ -31,9 +31,8 @@ FORMAT = "fdi_ros.discrepancy.extended_model/1"
 
 
 def _baseline_types() -> dict[str, Any]:
-    from fdi_ros.core.meanvalue import SpeedDensityModel
-
     from fdi_ros.core.discrepancy.reference_baseline import DieselReferenceBaseline
+    from fdi_ros.core.meanvalue import SpeedDensityModel
 
     return {"speed_density": SpeedDensityModel,
             "diesel_reference_baseline": DieselReferenceBaseline}

@@ -151,7 +151,7 @@ def write_report(out_dir: str | Path, data: Measured, baseline, extended: Extend
             plt.close(fig)
             figs.append((name, "Where in the operating region the baseline is wrong"))
         # 3. correlation with unused signals
-        cols = {k: v for k, v in ctx.columns.items()}
+        cols = dict(ctx.columns)
         if cols:
             cc = {}
             for k, v in cols.items():

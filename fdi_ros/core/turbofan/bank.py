@@ -11,9 +11,9 @@ model uncertainty. Residual ``r_i(k) = XN2(k) - XN2hat_i(k)`` with the model run
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-import math
 from pathlib import Path
 
 import numpy as np

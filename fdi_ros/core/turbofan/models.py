@@ -35,11 +35,11 @@ Simulation (paper: open loop, Euler at Ts)::
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
 import itertools
 import json
-from pathlib import Path
 import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 

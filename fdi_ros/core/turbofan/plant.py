@@ -55,8 +55,8 @@ spools; higher altitude (thinner air) at the same fuel runs the corrected fan sp
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 import math
+from dataclasses import dataclass, field
 
 import numpy as np
 

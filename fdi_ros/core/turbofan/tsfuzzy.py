@@ -21,8 +21,8 @@ A one-rule system is an affine model and its LM fit equals affine least squares 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares

@@ -31,6 +31,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--case", default=None, help="case name or index in a multi-case file")
     parser.add_argument("--features", action="store_true",
                         help="also write the crank-synchronous features to /fdi/features")
+    parser.add_argument("--features-only", action="store_true",
+                        help="write /fdi/features and /fdi/fault_truth but no sensor blocks "
+                             "(a small bag that `fdi-ros diagnose` reads directly)")
     parser.add_argument("--duration", type=float, default=None,
                         help="stop after this many seconds [s] (default: the scenario's)")
     parser.add_argument("--progress", action="store_true", help="show a progress bar")
@@ -62,7 +65,8 @@ def run(args: argparse.Namespace) -> int:
         from fdi_ros import bag
         writer = bag.BagWriter(args.out)
     fh = open(args.csv, "w") if args.csv else None  # noqa: SIM115 (closed in finally)
-    seg = CrankSegmenter(V_D=sc.params.V_D, R=sc.params.R) if args.features else None
+    want_features = args.features or args.features_only
+    seg = CrankSegmenter(V_D=sc.params.V_D, R=sc.params.R) if want_features else None
     bar = None
     if args.progress:
         from tqdm import tqdm
@@ -76,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
             if writer is not None:
                 while pending and pending[0].t <= block.t[-1]:
                     writer.write_fault(pending.pop(0))
-                writer.write_block(block)
+                if not args.features_only:
+                    writer.write_block(block)
                 if seg is not None:
                     for fv in seg.push(block):
                         writer.write_features(fv)

@@ -159,6 +159,9 @@ class IdentificationConfig:
                        compress_bins=self.compress_bins)
 
 
+_LOADED: dict[tuple[str, int], "ReferenceModelSet"] = {}  # see ReferenceModelSet.load
+
+
 @dataclass
 class ReferenceModelSet:
     """The five LOLIMOT models, their look-up tables and the phase branch centres.
@@ -187,7 +190,22 @@ class ReferenceModelSet:
 
     def predict(self, n, rho2, *, use_tables: bool = True
                 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        """Reference values at the operating points and a validity flag per point."""
+        """Reference values at the operating points and a validity flag per point.
+
+        One operating point at a time (the per-segment path) is memoised for the last point:
+        the bank's hypothesis models all ask for the reference at the same segment."""
+        if np.size(n) == 1 and np.size(rho2) == 1:
+            key = (float(np.ravel(n)[0]), float(np.ravel(rho2)[0]), bool(use_tables))
+            memo = self.__dict__.get("_memo")
+            if memo is not None and memo[0] == key:
+                return {k: v.copy() for k, v in memo[1].items()}, memo[2].copy()
+            out, valid = self._predict(n, rho2, use_tables=use_tables)
+            object.__setattr__(self, "_memo", (key, {k: v.copy() for k, v in out.items()},
+                                               valid.copy()))
+            return out, valid
+        return self._predict(n, rho2, use_tables=use_tables)
+
+    def _predict(self, n, rho2, *, use_tables: bool) -> tuple[dict[str, np.ndarray], np.ndarray]:
         X = np.column_stack([np.atleast_1d(n), np.atleast_1d(rho2)]).astype(float)
         valid = self.models[self.outputs[0]].in_region(X)
         out = {}
@@ -222,7 +240,19 @@ class ReferenceModelSet:
 
     @classmethod
     def load(cls, directory) -> ReferenceModelSet:
+        """Load a model set; the models of one bank in one process share one instance (the
+        files are read once; a changed manifest is read again)."""
         d = Path(directory)
+        mf = d / MANIFEST
+        if mf.exists():
+            key = (str(d.resolve()), mf.stat().st_mtime_ns)
+            if key not in _LOADED:
+                _LOADED[key] = cls._load(d)
+            return _LOADED[key]
+        return cls._load(d)
+
+    @classmethod
+    def _load(cls, d: Path) -> ReferenceModelSet:
         mf = d / MANIFEST
         if not mf.exists():
             raise FileNotFoundError(f"no reference model set in {d} (missing {MANIFEST}); "

@@ -159,7 +159,7 @@ class IdentificationConfig:
                        compress_bins=self.compress_bins)
 
 
-_LOADED: dict[tuple[str, int], "ReferenceModelSet"] = {}  # see ReferenceModelSet.load
+_LOADED: dict[tuple[str, int], ReferenceModelSet] = {}  # see ReferenceModelSet.load
 
 
 @dataclass

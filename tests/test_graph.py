@@ -121,3 +121,41 @@ def test_replay_and_offline_diagnose_agree_with_the_live_run(live, tmp_path):
     assert abs(rep.isolation_t - run.isolation_t) <= SEGMENT_S + 1e-9
     assert not math.isnan(rep.first_symptom_t)
     assert abs(rep.first_symptom_t - run.first_symptom_t) <= SEGMENT_S + 1e-9
+
+
+def test_model_node_that_cannot_load_its_model_is_reported(diesel_bank, tmp_path):
+    """A bank entry whose model files are missing: its node refuses `configure` (FAILURE, not
+    a swallowed exception), the supervisor says so on /diagnostics and brings the rest of the
+    bank on line."""
+    import yaml
+
+    from fdi_ros.graphwatch import GraphWatcher
+    from fdi_ros.launcher import Graph
+    from fdi_ros.livegraph import bank_ready
+
+    doc = yaml.safe_load(CONFIG.read_text())
+    doc["fdi_graph"]["bank"] = doc["fdi_graph"]["bank"][:2] + [
+        {"id": "broken", "faults": ["broken_fault"],
+         "model": {"type": "diesel_reference", "path": str(tmp_path / "no_models_here")}}]
+    cfg = tmp_path / "config" / "diesel_broken.yaml"
+    cfg.parent.mkdir()
+    cfg.write_text(yaml.safe_dump(doc))
+    graph = Graph(cfg, echo=None)
+    w = GraphWatcher()
+    try:
+        graph.start(exclude=("fdi_plant",))
+        alive = lambda: graph.alive()["fdi_supervisor"]  # noqa: E731
+
+        def reported():
+            st = w.diagnostic_status("fdi_supervisor: model broken")
+            return st is not None and "failed" in st.message and st
+
+        st = w.spin_until(reported, 60.0, "the broken model reported", alive)
+        assert "refused" in st.message, st.message
+        w.spin_until(lambda: bank_ready(w, ["nominal", "leak_ic_engine"]), 60.0,
+                     "the healthy models on line", alive)
+        assert w.lifecycle_state("fdi_model_broken") == "unconfigured"
+        assert w.lifecycle_state("fdi_model_nominal") == "active"
+    finally:
+        graph.stop()
+        w.close()

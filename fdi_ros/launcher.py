@@ -123,7 +123,8 @@ class Graph:
     def start_node(self, name: str) -> None:
         n = self.node(name)
         n.proc = subprocess.Popen(n.argv, env=self.env, stdout=subprocess.PIPE,
-                                  stderr=subprocess.STDOUT, text=True, start_new_session=True)
+                                  stderr=subprocess.STDOUT, text=True, start_new_session=True,
+                                  preexec_fn=_die_with_parent)
         threading.Thread(target=self._pump, args=(n,), daemon=True).start()
 
     @property
@@ -178,6 +179,19 @@ class Graph:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def _die_with_parent() -> None:
+    """In the child before exec: SIGTERM it when the launching process dies, however it dies
+    (the nodes run in sessions of their own, so a killed launcher would otherwise leave them
+    running). Linux only; elsewhere a no-op."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
 
 
 def run_until_interrupted(graph: Graph) -> int:

@@ -70,6 +70,15 @@ def bank_ready(w: GraphWatcher, model_ids: list[str]) -> bool:
     return True
 
 
+def bank_report(w: GraphWatcher, model_ids: list[str]) -> str:
+    """What /diagnostics last said of each model (for error messages)."""
+    out = []
+    for mid in model_ids:
+        st = w.diagnostic_status(f"fdi_supervisor: model {mid}")
+        out.append(f"{mid}: {st.message if st is not None else 'no status'}")
+    return "; ".join(out)
+
+
 def run_live(config: str | Path, *, scenario: str | Path | None = None,
              record: str | Path | None = None, replay: str | Path | None = None,
              realtime_factor: float = 1.0, timeout_s: float = 120.0,
@@ -101,7 +110,10 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
     try:
         graph.start(exclude=(source,))
         alive = lambda: all(v for k, v in graph.alive().items() if k != source)  # noqa: E731
-        w.spin_until(lambda: bank_ready(w, bank), 90.0, "the bank's lifecycle states", alive)
+        try:
+            w.spin_until(lambda: bank_ready(w, bank), 90.0, "the bank's lifecycle states", alive)
+        except TimeoutError as exc:
+            raise TimeoutError(f"{exc}: {bank_report(w, bank)}") from None
         log(f"bank ready in {time.monotonic() - wall0:.1f} s: "
             f"{', '.join(graph.cfg.entry(m).node_name for m in bank)}")
         graph.start_node(source)

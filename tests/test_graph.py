@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -25,6 +27,7 @@ ONSET = 6.0  # s, the scenario's 5 mm leak
 SEGMENT_S = 0.015  # one 180 deg CA segment at 2000 rpm
 MAX_SEGMENTS_TO_SYMPTOM = 5
 KILLED = "crankcase_vent_open"
+FROZEN = "egr_stuck_open"
 
 
 @pytest.fixture(scope="module")
@@ -50,6 +53,13 @@ def live(diesel_bank, tmp_path_factory):
         if "inject" not in done and d.t >= 1.0:
             w.inject(FaultEvent(t=ONSET, fault="leak_ic_engine", size=5.0, size_unit="mm"))
             done["inject"] = d.t
+        node = graph.node(graph.cfg.entry(FROZEN).node_name)
+        if "frozen" not in done and d.t >= 2.5:
+            os.kill(node.proc.pid, signal.SIGSTOP)  # alive, in the graph, but not answering
+            done["frozen"] = d.t
+        if "thawed" not in done and d.t >= 4.0:
+            os.kill(node.proc.pid, signal.SIGCONT)
+            done["thawed"] = d.t
         if "t" not in done and d.t >= 2.0:
             # kill a bank model's process 2 s into the run (before the fault)
             graph.kill(graph.cfg.entry(KILLED).node_name)
@@ -104,6 +114,21 @@ def test_diagnostics_report_isolation_and_the_dead_node(live):
     assert dead is not None and "failed" in dead.message, dead
     # the supervisor kept diagnosing after the kill: many more diagnoses came afterwards
     assert killed and len(w.seen.diagnoses) - killed["n_diag"] > 500
+
+
+def test_frozen_model_reported_silent_then_back(live):
+    run, w, _, done, lines = live
+    assert "frozen" in done and "thawed" in done
+    msgs = []
+    for _, arr in w.seen.diagnostics:
+        for st in arr.status:
+            if st.name == f"fdi_supervisor: model {FROZEN}":
+                msgs.append(st.message)
+    silent = [i for i, m in enumerate(msgs) if m.startswith("silent")]
+    assert silent, f"never reported silent: {sorted(set(msgs))}"
+    # after SIGCONT it answers again and is reported healthy (it goes off line at isolation)
+    assert any(not m.startswith("silent") for m in msgs[silent[-1] + 1:]), msgs[-5:]
+    assert run.isolated_faults == ("leak_ic_engine",), lines
 
 
 def test_replay_and_offline_diagnose_agree_with_the_live_run(live, tmp_path):

@@ -14,7 +14,9 @@ The decisions are all in :class:`fdi_ros.core.diagnoser.Diagnoser` (pure, shared
   ``node_timeout_s``, or whose state is not the one requested, is reported on ``/diagnostics``
   and left out; the rest of the bank goes on.
 
-Parameters: ``graph_config`` (path to config/<plant>.yaml, required), ``lag_segments`` (40),
+Parameters: ``graph_config`` (path to config/<plant>.yaml, required), ``silent_s`` (0.5 s of
+plant time without residuals from an active model: reported, and not waited for),
+``lag_segments`` (40),
 ``diagnostics_period_s`` (1.0).
 """
 
@@ -32,6 +34,11 @@ from rclpy.node import Node
 from fdi_ros import msgs
 from fdi_ros.nodes.common import DATA_QOS, run_node
 
+TIMEOUT = "lifecycle service did not answer within"
+# The first get_state to a new node is repeated this often [s] until it answers (a request or
+# its answer can be lost while DDS matches the service endpoints); only node_timeout_s without
+# any answer counts as a failure.
+FIRST_CONTACT_RETRY_S = 1.0
 # lifecycle_msgs State ids
 UNCONFIGURED, INACTIVE, ACTIVE = 1, 2, 3
 STATE_LABEL = {0: "unknown", 1: "unconfigured", 2: "inactive", 3: "active", 4: "finalized"}
@@ -49,7 +56,9 @@ class ModelNode:
     want: int = INACTIVE
     busy: bool = False  # a transition is in flight
     busy_since: float = 0.0
+    first_asked: float = 0.0  # wall time of the first get_state to this node
     failed: str = ""  # why the node is out of the bank ("" = healthy)
+    silent: bool = False  # active, alive, but no residuals for a while (frozen or overloaded)
     last_residual_t: float = -math.inf
     history: list[str] = field(default_factory=list)
 
@@ -74,6 +83,10 @@ class SupervisorNode(Node):
         self.cfg = load_graph_config(path)
         self.diag = Diagnoser(self.cfg)
         self.lag = int(self.get_parameter("lag_segments").value)
+        self.declare_parameter("silent_s", 0.5, ro)
+        self.silent_s = float(self.get_parameter("silent_s").value)
+        self._last_t = -math.inf  # plant time of the last processed step
+        self._online_since = -math.inf  # plant time of the last bank switch
         self._fac = msgs.MessageFactory("rclpy")
         self._ChangeState, self._GetState = ChangeState, GetState
         self._cb = ReentrantCallbackGroup()
@@ -116,12 +129,23 @@ class SupervisorNode(Node):
 
         now = time.monotonic()
         for m in self.models.values():
-            if m.failed:
-                continue
+            if m.failed and not m.failed.startswith(TIMEOUT):
+                continue  # refused or dead: out of the bank
             if m.busy:
-                if now - m.busy_since > self.cfg.node_timeout_s:
-                    self._fail(m, f"lifecycle service did not answer within "
-                                  f"{self.cfg.node_timeout_s} s")
+                waited = now - m.busy_since
+                if m.state == 0 and not m.failed and waited > FIRST_CONTACT_RETRY_S:
+                    # The first get_state of a new node: a request or its answer can be lost
+                    # while DDS matches the service endpoints, so ask again; only
+                    # node_timeout_s without any answer is a failure.
+                    if now - m.first_asked > self.cfg.node_timeout_s:
+                        self._fail(m, f"{TIMEOUT} {self.cfg.node_timeout_s} s")
+                    m.busy = False
+                elif waited > self.cfg.node_timeout_s:
+                    if not m.failed:
+                        self._fail(m, f"{TIMEOUT} {self.cfg.node_timeout_s} s")  # once
+                    # Do not wait on a call that may be lost: ask for the state again
+                    # (idempotent); an answer brings the node back into the bank.
+                    m.busy, m.state = False, 0
                 continue
             if m.state == m.want:
                 continue
@@ -148,11 +172,21 @@ class SupervisorNode(Node):
 
     def _call_get(self, m: ModelNode, expect: int | None = None) -> None:
         m.busy, m.busy_since = True, time.monotonic()
+        if not m.first_asked:
+            m.first_asked = m.busy_since
         fut = m.get.call_async(self._GetState.Request())
         fut.add_done_callback(lambda f, m=m, e=expect: self._got_state(m, e, f))
 
+    def _recover(self, m: ModelNode) -> None:
+        """A late answer from a node reported as not answering: it is back in the bank."""
+        if m.failed.startswith(TIMEOUT):
+            m.failed = ""
+            self.get_logger().info(f"model {m.model_id!r} ({m.node}) answers again")
+            self._publish_diagnostics()
+
     def _changed(self, m: ModelNode, goal: int, fut: Any) -> None:
         m.busy = False
+        self._recover(m)
         try:
             ok = fut.result().success
         except Exception as exc:
@@ -165,6 +199,7 @@ class SupervisorNode(Node):
 
     def _got_state(self, m: ModelNode, expect: int | None, fut: Any) -> None:
         m.busy = False
+        self._recover(m)
         try:
             sid = fut.result().current_state.id
         except Exception as exc:
@@ -180,8 +215,8 @@ class SupervisorNode(Node):
             self.get_logger().info(f"model {m.model_id!r} ({m.node}) is {STATE_LABEL[sid]}")
             self._publish_diagnostics()
 
-    def _fail(self, m: ModelNode, why: str) -> None:
-        m.busy = False
+    def _fail(self, m: ModelNode, why: str, *, busy: bool = False) -> None:
+        m.busy = busy
         m.failed = why
         self.get_logger().error(f"model {m.model_id!r} ({m.node}): {why}; going on without it")
         self._publish_diagnostics()
@@ -193,6 +228,7 @@ class SupervisorNode(Node):
         self._latest_feature = max(self._latest_feature, idx)
         if self._next_index is None:
             self._next_index = idx
+            self._online_since = float(m.t_end_s)
         self._process_ready()
 
     def _on_residuals(self, m: Any) -> None:
@@ -201,6 +237,10 @@ class SupervisorNode(Node):
         if node is None:
             return
         node.last_residual_t = rv.t
+        if node.silent:
+            node.silent = False
+            self.get_logger().info(f"model {node.model_id!r} answers again")
+            self._publish_diagnostics()
         if self._next_index is not None and rv.index < self._next_index:
             return  # too late: that step was decided without it
         self._pending.setdefault(rv.index, {})[rv.model_id] = rv
@@ -213,7 +253,8 @@ class SupervisorNode(Node):
 
     def _expected(self) -> list[str]:
         return [mid for mid in self.diag.models_online
-                if not self.models[mid].failed and self.models[mid].state == ACTIVE]
+                if not self.models[mid].failed and not self.models[mid].silent
+                and self.models[mid].state == ACTIVE]
 
     def _process_ready(self) -> None:
         while self._next_index is not None and self._next_index in self._feature_t:
@@ -236,6 +277,7 @@ class SupervisorNode(Node):
             threshold_high=s.threshold_high, threshold_intense=s.threshold_intense))
 
     def _step(self, k: int, t: float, residuals: dict[str, Any]) -> None:
+        self._last_t = t
         done = self._symptoms.pop(k, None)
         step = self.diag.update(k, t, residuals, symptoms=done)
         d = step.diagnosis
@@ -253,6 +295,7 @@ class SupervisorNode(Node):
         if step.switched:
             self.get_logger().info(f"bank switch at t = {t:.3f} s: off line {list(step.removed)}"
                                    f", on line {list(step.added)}")
+            self._online_since = t  # new models get time to come on line
             self._apply_wanted()
 
     # -- /diagnostics ---------------------------------------------------------------------------
@@ -288,6 +331,10 @@ class SupervisorNode(Node):
                                   hardware_id=m.node)
             if m.failed:
                 ms.level, ms.message = DiagnosticStatus.ERROR, f"node failed: {m.failed}"
+            elif m.silent:
+                ms.level = DiagnosticStatus.WARN
+                ms.message = (f"silent: no residuals since t = {m.last_residual_t:.3f} s "
+                              "(frozen or overloaded); diagnosing without it")
             elif m.state == 0:
                 ms.level, ms.message = DiagnosticStatus.WARN, "node not seen yet"
             else:
@@ -301,11 +348,25 @@ class SupervisorNode(Node):
 
     # -- liveness -------------------------------------------------------------------------------
     def check_liveness(self) -> None:
-        """Mark active models whose node left the graph (process died) as failed."""
+        """Mark active models whose node left the graph (process died) as failed, and those
+        that stay in the graph but stopped answering (no residuals for ``silent_s`` of plant
+        time while the features go on) as silent, until they answer again."""
         names = {n for n, _ in self.get_node_names_and_namespaces()}
+        latest = self._feature_t.get(self._latest_feature, self._last_t)
+        changed = False
         for m in self.models.values():
-            if not m.failed and m.state == ACTIVE and m.node not in names:
+            if m.failed or m.state != ACTIVE or m.model_id not in self.diag.models_online:
+                continue
+            if m.node not in names:
                 self._fail(m, "node vanished from the graph (process died?)")
+            elif not m.silent and latest - max(m.last_residual_t, self._online_since) \
+                    > self.silent_s:
+                m.silent = True
+                changed = True
+                self.get_logger().warn(f"model {m.model_id!r} ({m.node}) silent: no residuals "
+                                       f"since t = {m.last_residual_t:.3f} s")
+        if changed:
+            self._publish_diagnostics()
 
 
 def _make() -> SupervisorNode:

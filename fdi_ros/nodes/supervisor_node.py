@@ -28,7 +28,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 
 from fdi_ros import msgs
@@ -89,15 +88,12 @@ class SupervisorNode(Node):
         self._online_since = -math.inf  # plant time of the last bank switch
         self._fac = msgs.MessageFactory("rclpy")
         self._ChangeState, self._GetState = ChangeState, GetState
-        self._cb = ReentrantCallbackGroup()
         self.models: dict[str, ModelNode] = {}
         for e in self.cfg.bank:
             self.models[e.id] = ModelNode(
                 model_id=e.id, node=e.node_name,
-                change=self.create_client(ChangeState, f"/{e.node_name}/change_state",
-                                          callback_group=self._cb),
-                get=self.create_client(GetState, f"/{e.node_name}/get_state",
-                                       callback_group=self._cb))
+                change=self.create_client(ChangeState, f"/{e.node_name}/change_state"),
+                get=self.create_client(GetState, f"/{e.node_name}/get_state"))
         self._apply_wanted()
         self._pending: dict[int, dict[str, Any]] = {}
         self._symptoms: dict[int, Any] = {}
@@ -111,7 +107,9 @@ class SupervisorNode(Node):
         self._DiagnosticArray = DiagnosticArray
         self.create_subscription(Residuals, "/fdi/residuals", self._on_residuals, DATA_QOS)
         self.create_subscription(Features, "/fdi/features", self._on_features, DATA_QOS)
-        self.create_timer(0.05, self._drive_bank, callback_group=self._cb)
+        # One thread: service answers, data and timers never run concurrently, so the bank
+        # state needs no locks; every service call is async, so nothing blocks the executor.
+        self.create_timer(0.05, self._drive_bank)
         self.create_timer(float(self.get_parameter("diagnostics_period_s").value),
                           self._publish_diagnostics)
         self.last_diagnosis: Any = None

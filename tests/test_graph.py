@@ -67,8 +67,19 @@ def live(diesel_bank, tmp_path_factory):
             done["n_diag"] = len(w.seen.diagnoses)
 
     lines: list[str] = []
-    run, w = run_live(CONFIG, scenario=scenario, record=out, during=inject_and_kill,
-                      timeout_s=150, log=lines.append)
+    # a user's own node (examples/symptom_listener.py) subscribed to the symptoms throughout
+    listener = subprocess.Popen([sys.executable, str(ROOT / "examples" / "symptom_listener.py")],
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        run, w = run_live(CONFIG, scenario=scenario, record=out, during=inject_and_kill,
+                          timeout_s=150, log=lines.append)
+    finally:
+        listener.send_signal(signal.SIGINT)
+        try:
+            done["listener"] = listener.communicate(timeout=20)[0]
+        except subprocess.TimeoutExpired:
+            listener.kill()
+            done["listener"] = listener.communicate()[0]
     return run, w, out, done, lines
 
 
@@ -114,6 +125,13 @@ def test_diagnostics_report_isolation_and_the_dead_node(live):
     assert dead is not None and "failed" in dead.message, dead
     # the supervisor kept diagnosing after the kill: many more diagnoses came afterwards
     assert killed and len(w.seen.diagnoses) - killed["n_diag"] > 500
+
+
+def test_example_listener_node_sees_symptom_and_isolation(live):
+    _, _, _, done, _ = live
+    out = done["listener"]
+    assert "s_eta: -" in out, out[-2000:]
+    assert "state isolated" in out and "leak_ic_engine" in out, out[-2000:]
 
 
 def test_frozen_model_reported_silent_then_back(live):

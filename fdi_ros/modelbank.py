@@ -79,7 +79,7 @@ def ensure_bank(config: str | Path | GraphConfig, *, progress: bool = True, seed
     if cfg.plant == "turbofan":
         # one global TS model serves every bank model (it interpolates over the fault sizes)
         from fdi_ros.commands.train_turbofan import train
-        from fdi_ros.core.turbofan.settings import load_settings
+        from fdi_ros.plants.turbofan.settings import load_settings
 
         t0 = time.perf_counter()
         log(f"[bank] training the turbofan's Takagi-Sugeno node models "
@@ -96,10 +96,10 @@ def ensure_bank(config: str | Path | GraphConfig, *, progress: bool = True, seed
         build_models,
         simulate_features,
     )
-    from fdi_ros.core.diesel.plant import FAULT_UNITS
-    from fdi_ros.core.diesel.reference import ReferenceModelSet
-    from fdi_ros.core.diesel.symptoms import identify_fault_hypothesis, load_symptom_config
     from fdi_ros.core.types import FaultEvent
+    from fdi_ros.plants.diesel.plant import FAULT_UNITS
+    from fdi_ros.plants.diesel.reference import ReferenceModelSet
+    from fdi_ros.plants.diesel.symptoms import identify_fault_hypothesis, load_symptom_config
 
     built = []
     refs = [(m, s) for m, s in todo if s["type"] == "diesel_reference"]

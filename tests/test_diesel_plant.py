@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from fdi_ros.core.crank import segment_table
-from fdi_ros.core.diesel.plant import (
+from fdi_ros.core.types import FaultEvent
+from fdi_ros.plants.diesel.plant import (
     CHANNELS,
     FAULT_IDS,
     UNITS,
@@ -17,8 +18,7 @@ from fdi_ros.core.diesel.plant import (
     DieselParams,
     fuel_for_torque,
 )
-from fdi_ros.core.diesel.scenario import load_cases, load_scenario, simulate
-from fdi_ros.core.types import FaultEvent
+from fdi_ros.plants.diesel.scenario import load_cases, load_scenario, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 SCEN = ROOT / "config" / "scenarios"

@@ -8,7 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from fdi_ros.core.diesel.reference import (
+from fdi_ros.core.residual_models import load_residual_model
+from fdi_ros.core.types import FeatureVector
+from fdi_ros.plants.diesel.reference import (
     INPUTS,
     OUTPUTS,
     IdentificationConfig,
@@ -17,14 +19,12 @@ from fdi_ros.core.diesel.reference import (
     identify_reference_models,
     wrap_phase,
 )
-from fdi_ros.core.diesel.symptoms import (
+from fdi_ros.plants.diesel.symptoms import (
     RESIDUALS,
     THRESHOLDS_FILE,
     calibrate_thresholds,
     parity_residuals,
 )
-from fdi_ros.core.residual_models import load_residual_model
-from fdi_ros.core.types import FeatureVector
 
 TRUE = {
     "eta_v": lambda n, r: 0.80 + 0.05 * np.sin(n / 600.0) - 0.02 * (r - 2.0) ** 2,
@@ -140,7 +140,7 @@ def test_feature_table_and_bad_input():
 
 
 def test_stream_residuals_equal_the_per_segment_model(identified, tmp_path):
-    from fdi_ros.core.diesel.symptoms import ReferenceResidualModel, stream_residuals
+    from fdi_ros.plants.diesel.symptoms import ReferenceResidualModel, stream_residuals
 
     d, res = identified
     fresh = _synthetic(400, 9)
@@ -161,7 +161,7 @@ def test_stream_residuals_equal_the_per_segment_model(identified, tmp_path):
 def test_fault_hypotheses_separate_faults_of_equal_signature(identified, tmp_path):
     """Two faults that both raise r_eta only (same table signature "+,o,o,o,o") but with a
     different shape over the operating range are told apart by their hypothesis models."""
-    from fdi_ros.core.diesel.symptoms import identify_fault_hypothesis
+    from fdi_ros.plants.diesel.symptoms import identify_fault_hypothesis
 
     _, res = identified
     clean = _synthetic(3000, 11)
@@ -197,7 +197,7 @@ def test_fault_hypotheses_separate_faults_of_equal_signature(identified, tmp_pat
         assert np.nanmedian(norms[truth]) < 0.75 * np.nanmedian(norms[other]), truth
     assert hyp["speedy"].size_estimate > 0.5
     # Fault-free: no hypothesis explains a threshold's worth, none beats the nominal model.
-    from fdi_ros.core.diesel.symptoms import ReferenceResidualModel
+    from fdi_ros.plants.diesel.symptoms import ReferenceResidualModel
 
     clean_fv = _fvs(_synthetic(600, 77, period=200.0))
     nominal = ReferenceResidualModel(models=res.models, config=cfg, window=150)
@@ -220,7 +220,7 @@ def test_fault_hypotheses_separate_faults_of_equal_signature(identified, tmp_pat
 
 
 def test_storage_coefficient_recovered_with_the_static_map():
-    from fdi_ros.core.diesel.reference import storage_regressor
+    from fdi_ros.plants.diesel.reference import storage_regressor
 
     d = _synthetic(9000, 3)
     d["t"] = 0.015 * np.arange(9000)

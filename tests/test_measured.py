@@ -100,7 +100,7 @@ def test_segment_means_remove_the_pulsation():
 
 def test_bag_of_sensor_blocks_loads_as_one_record(tmp_path):
     from fdi_ros import bag
-    from fdi_ros.core.diesel.plant import DieselIntakePlant
+    from fdi_ros.plants.diesel.plant import DieselIntakePlant
 
     plant = DieselIntakePlant(seed=3, dalpha_deg=30.0)
     plant.set_inputs(n_rpm=1800.0, fuel_mg=20.0)

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fdi_ros.core.diesel.symptoms import (
+from fdi_ros.core.residual_models import load_residual_model, registered_types
+from fdi_ros.core.types import ResidualVector
+from fdi_ros.plants.diesel.symptoms import (
     PAPER_TABLE,
     RESIDUALS,
     SYMPTOMS,
@@ -16,8 +18,6 @@ from fdi_ros.core.diesel.symptoms import (
     load_fault_symptom_tables,
     moving_average,
 )
-from fdi_ros.core.residual_models import load_residual_model, registered_types
-from fdi_ros.core.types import ResidualVector
 
 
 def _rv(i, values, valid=True):
@@ -130,7 +130,7 @@ def _fv(i, t, n, p2, fuel, valid=True):
 
 
 def test_quasi_stationarity_gate_and_storage_correction():
-    from fdi_ros.core.diesel.symptoms import QuasiStationarity
+    from fdi_ros.plants.diesel.symptoms import QuasiStationarity
 
     cfg = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(1.0,) * 5,
                         storage_coeff=500.0, settle_s=0.5, max_speed_change=50.0,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fdi_ros.core.turbofan.tsfuzzy import StackedTS, TakagiSugeno, fit_ts
+from fdi_ros.core.tsfuzzy import StackedTS, TakagiSugeno, fit_ts
 
 OFFSET = np.array([10700.0, 14150.0, 0.2])
 SCALE = np.array([300.0, 400.0, 0.02])

@@ -13,10 +13,10 @@ import pytest
 
 from fdi_ros.core.residual_models import load_residual_model
 from fdi_ros.core.supervisor import ExpertSupervisor, models_online
-from fdi_ros.core.turbofan import bank as tfb
-from fdi_ros.core.turbofan import plant as tfp
-from fdi_ros.core.turbofan.models import GlobalModel, GridSpec, train_global
 from fdi_ros.core.types import FeatureVector
+from fdi_ros.plants.turbofan import bank as tfb
+from fdi_ros.plants.turbofan import plant as tfp
+from fdi_ros.plants.turbofan.models import GlobalModel, GridSpec, train_global
 
 C0 = np.array(tfp.PAPER_CONDITION)
 SMALL_GRID = GridSpec(ALT=(15000.0,), XM=(0.7,), deterioration=(0.0, 0.1, 0.2),
@@ -92,7 +92,7 @@ def test_residual_model_matches_batch_run_and_registry(gm, model_file):
     sc = tfb.Scenario(name="fan", events=((0.0, {"fan": "small"}),), duration_s=4.0, seed=3)
     sim = tfb.simulate_plant(sc)
     res = tfb.run_scenario(gm, sc, t0_s=1.2, sim=sim, xnh_weight=0.25)
-    spec = {"type": "turbofan_ts", "module": "fdi_ros.core.turbofan.bank",
+    spec = {"type": "turbofan_ts", "module": "fdi_ros.plants.turbofan.bank",
             "path": str(model_file), "condition": list(C0), "deterioration": 0.1,
             "xnh_weight": 0.25}
     live = load_residual_model(spec, model_id="fan_small")
@@ -187,7 +187,7 @@ def test_live_runner_preprocessor_and_bank_isolate_a_hub_fault(model_file):
 
 
 def test_lm_fit_of_interpolation_widths(gm, tmp_path):
-    from fdi_ros.core.turbofan.models import fit_widths
+    from fdi_ros.plants.turbofan.models import fit_widths
 
     fitted, res = fit_widths(gm, n_random=6, seed=2, duration_s=2.0)
     assert res.success and res.n_points == 6 and res.nfev > 1

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fdi_ros.core.turbofan import plant as tfp
+from fdi_ros.plants.turbofan import plant as tfp
 
 C0 = np.array(tfp.PAPER_CONDITION)
 

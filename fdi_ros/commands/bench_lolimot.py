@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from fdi_ros.commands.identify import load_features
-    from fdi_ros.core.diesel.reference import (
+    from fdi_ros.plants.diesel.reference import (
         AMPLITUDE_OF,
         INPUTS,
         OUTPUTS,
@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
     if with_p2:
         # The target the reference model really learns: eta_V without the air stored in the
         # boost volume during transients (coefficient from the identification's own split).
-        from fdi_ros.core.diesel.reference import identify_reference_models, storage_regressor
+        from fdi_ros.plants.diesel.reference import identify_reference_models, storage_regressor
 
         c = identify_reference_models(data, config=cfg).models.info["storage_coeff"]
         xs = storage_regressor(data["t"], data["n"], data["p2"], cfg.rate_lag)

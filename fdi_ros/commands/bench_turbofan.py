@@ -37,11 +37,11 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     from scipy.optimize import least_squares
 
-    from fdi_ros.core.turbofan import bank as tfb
-    from fdi_ros.core.turbofan import plant as tfp
-    from fdi_ros.core.turbofan.models import NORM_OFFSET, NORM_SCALE, GridSpec, train_global
-    from fdi_ros.core.turbofan.tsfuzzy import fit_ts, initial_model
+    from fdi_ros.core.tsfuzzy import fit_ts, initial_model
     from fdi_ros.core.types import FeatureVector
+    from fdi_ros.plants.turbofan import bank as tfb
+    from fdi_ros.plants.turbofan import plant as tfp
+    from fdi_ros.plants.turbofan.models import NORM_OFFSET, NORM_SCALE, GridSpec, train_global
 
     if args.repeat < 1:
         raise ValueError("--repeat must be >= 1")

@@ -94,8 +94,8 @@ def build_baseline(args, say):
     if args.reference:
         if args.plant != "diesel":
             raise ValueError("--reference is for the diesel plant's reference models")
-        from fdi_ros.core.diesel.reference import MANIFEST
         from fdi_ros.core.discrepancy.reference_baseline import DieselReferenceBaseline
+        from fdi_ros.plants.diesel.reference import MANIFEST
 
         if not (Path(args.reference) / MANIFEST).is_file():
             raise FileNotFoundError(f"no reference models in {args.reference} (missing "

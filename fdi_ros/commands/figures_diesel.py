@@ -43,8 +43,8 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from fdi_ros.core.crank import segment_table
-    from fdi_ros.core.diesel.plant import DieselIntakePlant, fuel_for_torque
-    from fdi_ros.core.diesel.scenario import simulate
+    from fdi_ros.plants.diesel.plant import DieselIntakePlant, fuel_for_torque
+    from fdi_ros.plants.diesel.scenario import simulate
 
     out = Path(args.out_dir)
     out.mkdir(parents=True, exist_ok=True)

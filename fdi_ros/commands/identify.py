@@ -86,7 +86,7 @@ def simulate_features(scenario, *, seed: int, progress: bool = False, faults=Non
     return (features, fault truth events)."""
     import dataclasses
 
-    from fdi_ros.core.diesel.scenario import load_scenario, simulate
+    from fdi_ros.plants.diesel.scenario import load_scenario, simulate
 
     sc = load_scenario(scenario)
     if faults is not None:
@@ -162,7 +162,7 @@ def _read_cache(path: Path) -> list:
 def calibrate_from_features(mset, feats, **kw):
     """Fault-free residual statistics -> SymptomConfig (thresholds, storage correction, gate);
     also returns the number of quasi-stationary segments used."""
-    from fdi_ros.core.diesel.symptoms import calibrate_from_fault_free, stream_residuals
+    from fdi_ros.plants.diesel.symptoms import calibrate_from_fault_free, stream_residuals
 
     cfg = calibrate_from_fault_free(mset, feats, **kw)
     n_used = sum(rv.valid for rv in stream_residuals(mset, feats, config=cfg))
@@ -174,14 +174,14 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
                  figures=None):
     """Identify, save, calibrate the fault-free thresholds; returns (result, symptom config or
     None, report dict)."""
-    from fdi_ros.core.diesel.reference import (
+    from fdi_ros.plants.diesel.reference import (
         INPUTS,
         OUTPUTS,
         IdentificationConfig,
         feature_table,
         identify_reference_models,
     )
-    from fdi_ros.core.diesel.symptoms import THRESHOLDS_FILE
+    from fdi_ros.plants.diesel.symptoms import THRESHOLDS_FILE
 
     cfg = config or IdentificationConfig(seed=seed)
     feats = load_features(data_source, seed=seed, mapping=mapping)
@@ -201,7 +201,7 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
                          for k in res.nrmse_test}}
     import numpy as np
 
-    from fdi_ros.core.diesel.reference import table_grid_errors
+    from fdi_ros.plants.diesel.reference import table_grid_errors
 
     X = np.column_stack([data[k] for k in INPUTS])
     report["table_vs_model_rmse"] = table_grid_errors(res.models, X[:: max(1, len(X) // 4000)])
@@ -219,7 +219,7 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
 
 
 def run(args: argparse.Namespace) -> int:
-    from fdi_ros.core.diesel.reference import IdentificationConfig
+    from fdi_ros.plants.diesel.reference import IdentificationConfig
 
     kw = {}
     if args.max_models is not None:
@@ -252,7 +252,7 @@ def identification_figures(res, data, outdir) -> list[Path]:
     import numpy as np
     from matplotlib.patches import Rectangle
 
-    from fdi_ros.core.diesel.reference import INPUTS, UNITS, split_blocks
+    from fdi_ros.plants.diesel.reference import INPUTS, UNITS, split_blocks
 
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
@@ -289,7 +289,7 @@ def identification_figures(res, data, outdir) -> list[Path]:
         v = ref[k]
         y = data[k]
         if k in mset.phase_centre:
-            from fdi_ros.core.diesel.reference import wrap_phase
+            from fdi_ros.plants.diesel.reference import wrap_phase
             y = wrap_phase(y, mset.phase_centre[k])
             v = wrap_phase(v, mset.phase_centre[k])
         V = np.where(ok, v, np.nan).reshape(nn.shape)

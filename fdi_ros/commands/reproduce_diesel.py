@@ -56,7 +56,7 @@ def plant_features(*, duration_s: float, seed: int, n_rpm: float = PAPER_N,
                    chunk_segments: int = 40) -> list:
     """Run the plant (steady inputs or a profile ``t -> (n, torque)``) and segment it."""
     from fdi_ros.core.crank import CrankSegmenter
-    from fdi_ros.core.diesel.plant import DieselIntakePlant, fuel_for_torque
+    from fdi_ros.plants.diesel.plant import DieselIntakePlant, fuel_for_torque
 
     plant = DieselIntakePlant(seed=seed)
     if profile is None:
@@ -91,8 +91,8 @@ def sweep_profile(period_s: float, phase: float = 0.0):
 
 
 def fault_event(fault: str, size: float, t: float):
-    from fdi_ros.core.diesel.plant import FAULT_UNITS
     from fdi_ros.core.types import FaultEvent
+    from fdi_ros.plants.diesel.plant import FAULT_UNITS
 
     return FaultEvent(t=t, fault=fault, size=size, size_unit=FAULT_UNITS[fault])
 
@@ -143,8 +143,8 @@ def count_false_symptoms(states) -> dict:
 
 def _load_or_build(args, progress: bool):
     from fdi_ros.commands.identify import DEFAULT_DRIVE, DEFAULT_IDENT, build_models
-    from fdi_ros.core.diesel.reference import ReferenceModelSet
-    from fdi_ros.core.diesel.symptoms import load_symptom_config
+    from fdi_ros.plants.diesel.reference import ReferenceModelSet
+    from fdi_ros.plants.diesel.symptoms import load_symptom_config
 
     d = Path(args.models)
     if not args.rebuild and (d / "reference_models.json").exists():
@@ -160,7 +160,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from fdi_ros.commands.identify import DEFAULT_DRIVE, load_features
-    from fdi_ros.core.diesel.symptoms import (
+    from fdi_ros.plants.diesel.symptoms import (
         PAPER_TABLE,
         isolate,
         load_fault_symptom_tables,
@@ -250,7 +250,7 @@ def run(args: argparse.Namespace) -> int:
 def _write_plant_table(path, runs) -> None:
     import yaml
 
-    from fdi_ros.core.diesel.symptoms import SYMPTOMS, signature_string
+    from fdi_ros.plants.diesel.symptoms import SYMPTOMS, signature_string
 
     path = Path(path)
     doc = yaml.safe_load(path.read_text()) if path.exists() else {}
@@ -274,7 +274,7 @@ def compare_hypotheses(mset, scfg, models_dir, *, seed: int, progress: bool,
     import numpy as np
 
     from fdi_ros.commands.identify import DEFAULT_DRIVE, simulate_features
-    from fdi_ros.core.diesel.symptoms import identify_fault_hypothesis
+    from fdi_ros.plants.diesel.symptoms import identify_fault_hypothesis
 
     sizes = {"crankcase_vent_open": 10.0, "egr_leaky": 4.0}
     hyp = {}

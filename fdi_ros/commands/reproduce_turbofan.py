@@ -55,9 +55,9 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from fdi_ros.core.turbofan import bank as tfb
-    from fdi_ros.core.turbofan.models import GlobalModel
-    from fdi_ros.core.turbofan.settings import load_scenario, load_settings
+    from fdi_ros.plants.turbofan import bank as tfb
+    from fdi_ros.plants.turbofan.models import GlobalModel
+    from fdi_ros.plants.turbofan.settings import load_scenario, load_settings
 
     settings = load_settings(args.config)
     t0_s = settings.t0_s if args.t0 is None else args.t0
@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--runs must be >= 1")
     model_path = Path(args.model or settings.model_path)
     report: dict = {"t0_s": t0_s, "xnh_weight": w, "model": str(model_path)}
-    from fdi_ros.core.turbofan.plant import plant_signature
+    from fdi_ros.plants.turbofan.plant import plant_signature
 
     stale = False
     if model_path.exists() and not args.retrain:
@@ -181,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
     report["run_seconds"] = round(time.perf_counter() - clock, 2)
 
     if args.figures != "none":
-        from fdi_ros.core.turbofan.figures import case_figure, sweep_figure
+        from fdi_ros.plants.turbofan.figures import case_figure, sweep_figure
 
         out = Path(args.figures)
         out.mkdir(parents=True, exist_ok=True)

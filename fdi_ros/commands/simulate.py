@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from fdi_ros.core.crank import CrankSegmenter
-    from fdi_ros.core.diesel.scenario import iter_simulate, load_scenario
+    from fdi_ros.plants.diesel.scenario import iter_simulate, load_scenario
 
     if not args.out and not args.csv:
         raise ValueError("give --out <bag dir> and/or --csv <file.csv>")

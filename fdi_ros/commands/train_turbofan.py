@@ -31,8 +31,8 @@ def train(settings, *, out=None, seed=None, progress=True, fit_widths=False):
     """Train and save the global model of ``settings``; returns (model, path, width fit)."""
     import numpy as np
 
-    from fdi_ros.core.turbofan import bank as tfb
-    from fdi_ros.core.turbofan import models as tfm
+    from fdi_ros.plants.turbofan import bank as tfb
+    from fdi_ros.plants.turbofan import models as tfm
 
     gm = tfm.train_global(settings.grid, n_rules=settings.n_rules,
                           seed=settings.training_seed if seed is None else seed,
@@ -50,7 +50,7 @@ def train(settings, *, out=None, seed=None, progress=True, fit_widths=False):
 
 
 def run(args: argparse.Namespace) -> int:
-    from fdi_ros.core.turbofan.settings import load_settings
+    from fdi_ros.plants.turbofan.settings import load_settings
 
     settings = load_settings(args.config)
     gm, path, fit = train(settings, out=args.out, seed=args.seed,

@@ -11,7 +11,7 @@ Phase convention
 ----------------
 ``phi`` is returned in deg CA (180 deg CA = one period = 2 pi), wrapped to ``[-90, 90)``. A
 signal whose maximum is at ``alpha = j D + a`` has ``phi = -a`` (wrapped). Consumers that need
-another branch re-wrap with a centre (``fdi_ros.core.diesel.reference.wrap_phase``).
+another branch re-wrap with a centre (``fdi_ros.plants.diesel.reference.wrap_phase``).
 
 Method
 ------

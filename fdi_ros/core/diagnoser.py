@@ -38,7 +38,7 @@ def _make_symptom_stage(cfg: GraphConfig) -> tuple[Any, Any, str]:
 
     import yaml
 
-    from fdi_ros.core.diesel.symptoms import SymptomGenerator, load_fault_symptom_tables
+    from fdi_ros.plants.diesel.symptoms import SymptomGenerator, load_fault_symptom_tables
 
     s = cfg.symptoms
     conf = s.get("config")
@@ -104,7 +104,7 @@ class Diagnoser:
                 feed = {}  # without the reference model nothing can be said at this step
             active = symptoms is not None and symptoms.valid and any(symptoms.levels)
             if active and self.table is not None:
-                from fdi_ros.core.diesel.symptoms import isolate
+                from fdi_ros.plants.diesel.symptoms import isolate
 
                 candidates = tuple(isolate(symptoms.as_table_order(), self.table))
             if not self.supervisor.isolated:

@@ -71,7 +71,7 @@ def _ensure(plant: str) -> None:
     if plant == "diesel":
         _register_diesel()
     elif plant == "turbofan":
-        from fdi_ros.core.turbofan import live  # registers itself
+        from fdi_ros.plants.turbofan import live  # registers itself
 
         del live
     if plant not in _RUNNERS:
@@ -102,8 +102,8 @@ class DieselRunner:
 
     def __init__(self, scenario: str | Path | dict | None = None, *,
                  seed: int | None = None) -> None:
-        from fdi_ros.core.diesel.plant import DieselIntakePlant
-        from fdi_ros.core.diesel.scenario import load_scenario
+        from fdi_ros.plants.diesel.plant import DieselIntakePlant
+        from fdi_ros.plants.diesel.scenario import load_scenario
 
         sc = load_scenario(scenario if scenario is not None
                            else ROOT / "config" / "scenarios" / "diesel_paper_op.yaml")
@@ -147,7 +147,7 @@ class DieselPreprocessor:
 
     def __init__(self, **kwargs: Any) -> None:
         from fdi_ros.core.crank import CrankSegmenter
-        from fdi_ros.core.diesel.plant import DieselParams
+        from fdi_ros.plants.diesel.plant import DieselParams
 
         p = DieselParams()
         kwargs.setdefault("V_D", p.V_D)

@@ -45,9 +45,9 @@ class ResidualModel(Protocol):
 Factory = Callable[..., ResidualModel]
 _REGISTRY: dict[str, Factory] = {}
 # Modules that register the built-in kinds, imported on first use of the kind.
-_PROVIDERS = {"diesel_reference": "fdi_ros.core.diesel.symptoms",
-              "diesel_fault_hypothesis": "fdi_ros.core.diesel.symptoms",
-              "turbofan_ts": "fdi_ros.core.turbofan.bank",
+_PROVIDERS = {"diesel_reference": "fdi_ros.plants.diesel.symptoms",
+              "diesel_fault_hypothesis": "fdi_ros.plants.diesel.symptoms",
+              "turbofan_ts": "fdi_ros.plants.turbofan.bank",
               "discrepancy_extended": "fdi_ros.core.discrepancy.residual"}
 SPEC_FILES = ("residual_model.yaml", "residual_model.json")
 
@@ -133,4 +133,4 @@ def load_residual_model(path_or_spec, *, model_id: str) -> ResidualModel:
 
 
 # Generic symptom logic re-exported here (imported last: that module registers its kinds here).
-from fdi_ros.core.diesel.symptoms import SymptomConfig, SymptomGenerator, SymptomState, isolate  # noqa: E402
+from fdi_ros.plants.diesel.symptoms import SymptomConfig, SymptomGenerator, SymptomState, isolate  # noqa: E402

@@ -29,7 +29,7 @@ class DieselReferenceBaseline:
 
     @property
     def _ref(self):
-        from fdi_ros.core.diesel.reference import ReferenceModelSet
+        from fdi_ros.plants.diesel.reference import ReferenceModelSet
 
         cache = self.__dict__.get("_cache")
         if cache is None:

@@ -1,6 +1,6 @@
 """Measured data from our diesel plant with a hidden effect, for tests and benchmarks.
 
-:func:`plant_record` runs :class:`fdi_ros.core.diesel.plant.DieselIntakePlant` through a seeded,
+:func:`plant_record` runs :class:`fdi_ros.plants.diesel.plant.DieselIntakePlant` through a seeded,
 smoothly varying operating cycle (speed, fuel; EGR closed, swirl flaps open, as in the paper's
 identification cycle) and returns a crank-angle sampled :class:`Measured` record with two extra,
 unmapped columns (``T_amb``, ``u_aux``: slowly varying quantities the model does not use).
@@ -58,7 +58,7 @@ def plant_record(seed: int, *, duration_s: float = 60.0, dalpha_deg: float = 20.
 
     ``faults``: :class:`~fdi_ros.core.types.FaultEvent` s injected before the run.
     """
-    from fdi_ros.core.diesel.plant import DieselIntakePlant
+    from fdi_ros.plants.diesel.plant import DieselIntakePlant
 
     plant = DieselIntakePlant(seed=seed, dalpha_deg=dalpha_deg)
     plant.set_input_profile(operating_profile(seed if profile_seed is None else profile_seed,

@@ -30,8 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fdi_ros.core.diesel.reference import ReferenceModelSet, wrap_phase
 from fdi_ros.core.types import FeatureVector, ResidualVector
+from fdi_ros.plants.diesel.reference import ReferenceModelSet, wrap_phase
 
 __all__ = ["RESIDUALS", "RESIDUAL_UNITS", "SYMPTOMS", "LEVEL_CODES", "PAPER_TABLE",
            "SymptomConfig", "SymptomState", "SymptomGenerator", "calibrate_thresholds",

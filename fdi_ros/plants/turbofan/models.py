@@ -5,7 +5,7 @@ Node model (paper eq. 12): at node j = (c_j, p_j)::
     XNLdot = F1_j(XNL, XNH, WF36),   XNHdot = F2_j(XNL, XNH, WF36)
 
 each F a Takagi-Sugeno system (R rules, Gaussian premise on XNL, affine consequents) fitted by
-Levenberg-Marquardt (:func:`~fdi_ros.core.turbofan.tsfuzzy.fit_ts`) to 20 s of transient data
+Levenberg-Marquardt (:func:`~fdi_ros.core.tsfuzzy.fit_ts`) to 20 s of transient data
 (1000 samples at Ts = 0.02 s) of the plant at that node. The training target is the one-step
 difference ``(x(k+1) - x(k)) / Ts`` of the noise-free states, so that the Euler-integrated model
 reproduces the sampled plant.
@@ -43,8 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fdi_ros.core.turbofan import plant as tfp
-from fdi_ros.core.turbofan.tsfuzzy import StackedTS, fit_ts
+from fdi_ros.core.tsfuzzy import StackedTS, fit_ts
+from fdi_ros.plants.turbofan import plant as tfp
 
 DIMS = ("ALT", "XM", "DTAMB", "PC", "deterioration", "fan", "hub")
 #: fixed input normalisation of every node model: (XNL [rpm], XNH [rpm], WF36 [kg/s])
@@ -314,7 +314,7 @@ def train_global(grid: GridSpec, *, n_rules: int = 3, seed: int = 0, duration_s:
                  progress: bool = True) -> GlobalModel:
     """Simulate every node of the grid on a random transient and fit its two TS systems.
 
-    Data per node: ``duration_s`` of :func:`~fdi_ros.core.turbofan.plant.training_input`
+    Data per node: ``duration_s`` of :func:`~fdi_ros.plants.turbofan.plant.training_input`
     around the node's scheduled fuel, noise-free (the paper trains on CLM data).
     """
     from tqdm import tqdm

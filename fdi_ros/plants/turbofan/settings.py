@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from fdi_ros.core.turbofan import plant as tfp
-from fdi_ros.core.turbofan.bank import Scenario
-from fdi_ros.core.turbofan.models import GridSpec
+from fdi_ros.plants.turbofan import plant as tfp
+from fdi_ros.plants.turbofan.bank import Scenario
+from fdi_ros.plants.turbofan.models import GridSpec
 
 DEFAULT_CONFIG = Path("config/turbofan.yaml")
 

@@ -19,8 +19,8 @@ import numpy as np
 
 from fdi_ros.core.plants import ROOT, _PendingTruth, register_plant
 from fdi_ros.core.supervisor import fault_type
-from fdi_ros.core.turbofan import plant as tfp
 from fdi_ros.core.types import FaultEvent, FeatureVector, SampleBlock
+from fdi_ros.plants.turbofan import plant as tfp
 
 DEFAULT_SCENARIO = ROOT / "config" / "turbofan_hub_small_to_large.yaml"
 CHANNELS = ("XN2", "XNH", "WF36")
@@ -44,7 +44,7 @@ class TurbofanRunner:
                  block_samples: int = 5, config: str | Path | None = None) -> None:
         import yaml
 
-        from fdi_ros.core.turbofan.settings import load_scenario, load_settings
+        from fdi_ros.plants.turbofan.settings import load_scenario, load_settings
 
         settings = load_settings(config or ROOT / "config" / "turbofan.yaml")
         if isinstance(scenario, dict):

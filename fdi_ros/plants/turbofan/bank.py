@@ -2,7 +2,7 @@
 
 Bank (Diao & Passino 2004, section 4): M0 nominal, M1-M3 fan fault small/medium/large, M4-M6
 compressor-hub fault small/medium/large, M7-M15 the nine fan x hub double faults. Model i is
-the global TS model (:mod:`~fdi_ros.core.turbofan.models`) at the engine's operating condition,
+the global TS model (:mod:`~fdi_ros.plants.turbofan.models`) at the engine's operating condition,
 its deterioration index (assumed known from the maintenance record, as the paper's design model
 captures deterioration) and the fault sizes of situation i; manufacturing variation is left as
 model uncertainty. Residual ``r_i(k) = XN2(k) - XN2hat_i(k)`` with the model run open loop
@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from fdi_ros.core.supervisor import BankModel, ExpertSupervisor, fault_type, sized_bank
-from fdi_ros.core.turbofan import plant as tfp
-from fdi_ros.core.turbofan.models import GlobalModel, Mixture
 from fdi_ros.core.types import FeatureVector, ResidualVector
+from fdi_ros.plants.turbofan import plant as tfp
+from fdi_ros.plants.turbofan.models import GlobalModel, Mixture
 
 PAPER_BANK: tuple[BankModel, ...] = tuple(sized_bank(("fan", "hub")))
 DEFAULT_MODEL_PATH = Path("build/turbofan/global_model.npz")

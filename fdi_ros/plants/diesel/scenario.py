@@ -44,7 +44,8 @@ from typing import Any
 
 import numpy as np
 
-from fdi_ros.core.diesel.plant import (
+from fdi_ros.core.types import FaultEvent, SampleBlock
+from fdi_ros.plants.diesel.plant import (
     CHANNELS,
     FAULT_IDS,
     FAULT_UNITS,
@@ -53,7 +54,6 @@ from fdi_ros.core.diesel.plant import (
     DieselParams,
     fuel_for_torque,
 )
-from fdi_ros.core.types import FaultEvent, SampleBlock
 
 _TOP_KEYS = {"name", "description", "seed", "duration_s", "dalpha_deg", "block_deg", "inputs",
              "faults", "cases", "params"}

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fdi_ros.core.turbofan.bank import ScenarioResult
+from fdi_ros.plants.turbofan.bank import ScenarioResult
 
 STYLES = ["-", ":", "-.", "--", ":", "-.", "--"]
 

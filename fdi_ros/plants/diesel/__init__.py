@@ -5,7 +5,7 @@
 ``reference`` / ``symptoms``  reference models and symptom logic (identification side)
 """
 
-from fdi_ros.core.diesel.plant import (
+from fdi_ros.plants.diesel.plant import (
                                        CHANNELS,
                                        FAULT_IDS,
                                        FAULT_UNITS,
@@ -17,7 +17,7 @@ from fdi_ros.core.diesel.plant import (
                                        eta_true,
                                        fuel_for_torque,
 )
-from fdi_ros.core.diesel.scenario import (
+from fdi_ros.plants.diesel.scenario import (
                                        Scenario,
                                        SimResult,
                                        iter_simulate,

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def diesel_bank() -> Path:
     """The diesel graph's model bank (reference models, thresholds, fault hypotheses), built
     once by the same code as `fdi-ros build-bank` when missing or stale; returns the config."""
-    from fdi_ros.modelbank import ensure_bank
+    from fdi_ros.plants import ensure_bank
 
     config = ROOT / "config" / "diesel.yaml"
     ensure_bank(config, progress=False, log=lambda s: None)

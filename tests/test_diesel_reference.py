@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from fdi_ros.core.residual_models import load_residual_model
 from fdi_ros.core.types import FeatureVector
+from fdi_ros.plants import load_residual_model
 from fdi_ros.plants.diesel.reference import (
     INPUTS,
     OUTPUTS,

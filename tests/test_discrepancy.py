@@ -171,8 +171,8 @@ def test_extended_model_save_load_roundtrip(tmp_path):
     assert effect_from_dict(Offset(onset=True).to_dict()) == Offset(onset=True)
     # and through the residual-model registry
     from fdi_ros.core.discrepancy.residual import write_spec
-    from fdi_ros.core.residual_models import load_residual_model
     from fdi_ros.core.types import FeatureVector
+    from fdi_ros.plants import load_residual_model
 
     write_spec(path)
     rm = load_residual_model(tmp_path, model_id="extended")

@@ -20,7 +20,7 @@ SCENARIO = ROOT / "config" / "turbofan_hub_small_to_large.yaml"
 
 @pytest.fixture(scope="module")
 def live():
-    from fdi_ros.modelbank import ensure_bank
+    from fdi_ros.plants import ensure_bank
 
     ensure_bank(CONFIG, progress=False, log=lambda s: None)  # trains the TS models if missing
     lines: list[str] = []

@@ -11,9 +11,9 @@ import math
 import numpy as np
 import pytest
 
-from fdi_ros.core.residual_models import load_residual_model
 from fdi_ros.core.supervisor import ExpertSupervisor, models_online
 from fdi_ros.core.types import FeatureVector
+from fdi_ros.plants import load_residual_model
 from fdi_ros.plants.turbofan import bank as tfb
 from fdi_ros.plants.turbofan import plant as tfp
 from fdi_ros.plants.turbofan.models import GlobalModel, GridSpec, train_global
@@ -148,7 +148,7 @@ def test_longest_wrong_hold_agrees_with_the_supervisor(gm):
 
 
 def test_live_runner_preprocessor_and_bank_isolate_a_hub_fault(model_file):
-    from fdi_ros.core.plants import make_preprocessor, make_runner
+    from fdi_ros.plants import make_preprocessor, make_runner
 
     scenario = {"name": "live", "duration_s": 8.0, "seed": 4,
                 "events": [{"t": 3.0, "faults": {"hub": "small"}}]}

@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     import psutil
 
     from fdi_ros.livegraph import run_live
-    from fdi_ros.modelbank import ensure_bank
+    from fdi_ros.plants import ensure_bank
     from fdi_ros.plants.diesel.scenario import load_scenario
 
     ensure_bank(args.config, progress=False, log=lambda s: None)

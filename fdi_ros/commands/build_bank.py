@@ -15,7 +15,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fdi_ros.modelbank import ensure_bank
+    from fdi_ros.plants import ensure_bank
 
     built = ensure_bank(args.config, progress=not args.no_progress, seed=args.seed)
     print(f"built: {', '.join(built) if built else 'nothing (all models present)'}")

@@ -38,7 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from fdi_ros.commands.diagnose import summarise
     from fdi_ros.livegraph import run_live
-    from fdi_ros.modelbank import ensure_bank
+    from fdi_ros.plants import ensure_bank
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -29,7 +29,7 @@ def default_config(plant: str) -> Path:
 def features_of_bag(path: str | Path) -> tuple[str, list]:
     """(plant, feature vectors) of a bag: recomputed from the sensor blocks when present."""
     from fdi_ros import bag
-    from fdi_ros.core.plants import make_preprocessor
+    from fdi_ros.plants import make_preprocessor
 
     tops = bag.topics(path)
     if "/fdi/sensor_block" in tops:

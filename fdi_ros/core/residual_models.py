@@ -6,14 +6,15 @@ every :class:`~fdi_ros.core.types.FeatureVector` into a
 (minimum-residual index) and turns the nominal model's residuals into symptoms with a
 :class:`SymptomGenerator`.
 
-Registering a model kind (e.g. in a plant's own module)::
+Registering a model kind (e.g. in a plant wing's own module)::
 
-    @register_residual_model("turbofan_ts")
+    @register_residual_model("tank_level")
     def _make(spec: dict, *, base_dir: Path, model_id: str) -> ResidualModel: ...
 
 A spec is a mapping with ``type:`` and kind-specific keys (paths relative to ``base_dir``);
-``module:`` names a module to import first so that it can register its kind. Kinds of the
-diesel plant (``diesel_reference``, ``diesel_fault_hypothesis``) register on first use.
+``module:`` names a module to import first so that it can register its kind. The plant
+registry (:mod:`fdi_ros.plants`) installs, through :func:`set_kind_lookup`, how an unknown
+kind finds the wing module that registers it; this module names no plant.
 """
 
 from __future__ import annotations
@@ -26,8 +27,8 @@ from typing import Protocol, runtime_checkable
 
 from fdi_ros.core.types import FeatureVector, ResidualVector
 
-__all__ = ["ResidualModel", "SymptomConfig", "SymptomGenerator", "SymptomState", "isolate",
-           "load_residual_model", "register_residual_model", "registered_types"]
+__all__ = ["ResidualModel", "load_residual_model", "register_residual_model",
+           "registered_types", "set_kind_lookup"]
 
 
 @runtime_checkable
@@ -44,12 +45,40 @@ class ResidualModel(Protocol):
 
 Factory = Callable[..., ResidualModel]
 _REGISTRY: dict[str, Factory] = {}
-# Modules that register the built-in kinds, imported on first use of the kind.
-_PROVIDERS = {"diesel_reference": "fdi_ros.plants.diesel.symptoms",
-              "diesel_fault_hypothesis": "fdi_ros.plants.diesel.symptoms",
-              "turbofan_ts": "fdi_ros.plants.turbofan.bank",
-              "discrepancy_extended": "fdi_ros.core.discrepancy.residual"}
+# Generic kinds of the core, imported on first use of the kind.
+_PROVIDERS = {"discrepancy_extended": "fdi_ros.core.discrepancy.residual"}
 SPEC_FILES = ("residual_model.yaml", "residual_model.json")
+
+
+def _no_kind(kind: str) -> bool:
+    return False
+
+
+def _no_dir(path: Path) -> dict | None:
+    return None
+
+
+def _no_kinds() -> tuple[str, ...]:
+    return ()
+
+
+class _Lookup:
+    """Where kinds not registered yet are found (installed by the plant registry)."""
+
+    import_kind: Callable[[str], bool] = staticmethod(_no_kind)
+    dir_spec: Callable[[Path], dict | None] = staticmethod(_no_dir)
+    known: Callable[[], tuple[str, ...]] = staticmethod(_no_kinds)
+
+
+def set_kind_lookup(import_kind: Callable[[str], bool],
+                    dir_spec: Callable[[Path], dict | None],
+                    known: Callable[[], tuple[str, ...]]) -> None:
+    """Install the lookup of kinds provided outside the core: ``import_kind(kind)`` imports
+    the module registering ``kind`` (True if it knew one), ``dir_spec(path)`` gives the spec of
+    a bare model directory (or None), ``known()`` lists every kind it can provide."""
+    _Lookup.import_kind = staticmethod(import_kind)
+    _Lookup.dir_spec = staticmethod(dir_spec)
+    _Lookup.known = staticmethod(known)
 
 
 def register_residual_model(type_name: str) -> Callable[[Factory], Factory]:
@@ -71,6 +100,9 @@ def register_residual_model(type_name: str) -> Callable[[Factory], Factory]:
 def registered_types() -> tuple[str, ...]:
     for mod in set(_PROVIDERS.values()):
         importlib.import_module(mod)
+    for kind in _Lookup.known():
+        if kind not in _REGISTRY:
+            _Lookup.import_kind(kind)
     return tuple(sorted(_REGISTRY))
 
 
@@ -95,8 +127,8 @@ def _read_spec(path: Path) -> dict:
 def load_residual_model(path_or_spec, *, model_id: str) -> ResidualModel:
     """Build one bank model from a spec mapping, a spec file, or a model directory.
 
-    A directory is read through its ``residual_model.yaml`` (or ``.json``); a diesel reference
-    model directory (with ``reference_models.json``) is a ``diesel_reference`` model.
+    A directory is read through its ``residual_model.yaml`` (or ``.json``), else through the
+    installed directory lookup (a wing recognising its own model directory).
     """
     base_dir = Path.cwd()
     if isinstance(path_or_spec, Mapping):
@@ -109,8 +141,8 @@ def load_residual_model(path_or_spec, *, model_id: str) -> ResidualModel:
             found = [path / f for f in SPEC_FILES if (path / f).exists()]
             if found:
                 spec, base_dir = _read_spec(found[0]), path
-            elif (path / "reference_models.json").exists():
-                spec, base_dir = {"type": "diesel_reference", "path": "."}, path
+            elif (bare := _Lookup.dir_spec(path)) is not None:
+                spec, base_dir = bare, path
             else:
                 raise FileNotFoundError(f"{path} holds no {' or '.join(SPEC_FILES)}")
         else:
@@ -125,12 +157,11 @@ def load_residual_model(path_or_spec, *, model_id: str) -> ResidualModel:
         except ImportError as exc:
             raise ValueError(f"cannot import module {module!r} for type {kind!r}: {exc}") from exc
     if kind not in _REGISTRY:
+        _Lookup.import_kind(kind)
+    if kind not in _REGISTRY:
         raise ValueError(f"unknown residual model type {kind!r}; known: {registered_types()}")
     if not model_id:
         raise ValueError("model_id must not be empty")
     rest = {k: v for k, v in spec.items() if k not in ("type", "module")}
     return _REGISTRY[kind](rest, base_dir=base_dir, model_id=model_id)
 
-
-# Generic symptom logic re-exported here (imported last: that module registers its kinds here).
-from fdi_ros.plants.diesel.symptoms import SymptomConfig, SymptomGenerator, SymptomState, isolate  # noqa: E402

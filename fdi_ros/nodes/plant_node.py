@@ -1,7 +1,7 @@
 """Plant simulator node: publishes sensor blocks at the plant's pace and fault ground truth.
 
 The plant (diesel or turbofan), its scenario (inputs over time, scheduled faults) and the block
-size come from :func:`fdi_ros.core.plants.make_runner`. A wall-clock timer advances plant time
+size come from :func:`fdi_ros.plants.make_runner`. A wall-clock timer advances plant time
 by ``realtime_factor`` x the elapsed wall time (0 = as fast as the graph takes it); every block
 is published on ``/fdi/sensor_block`` and plant time on ``/clock`` (so other nodes can run on
 sim time). Faults are injected at run time on ``/fdi/fault_inject`` (``t_s`` <= 0 means "now")
@@ -43,7 +43,7 @@ class PlantNode(Node):
         from fdi_msgs.msg import FaultEvent, SensorBlock
         from rosgraph_msgs.msg import Clock
 
-        from fdi_ros.core.plants import make_runner
+        from fdi_ros.plants import make_runner
 
         p = self.get_parameter
         self.runner = make_runner(p("plant").value, p("scenario").value or None,

@@ -1,5 +1,5 @@
 """Preprocessor node: sensor blocks -> feature vectors (crank-synchronous segments for the
-diesel, one vector per sample for the turbofan), via :func:`fdi_ros.core.plants.make_preprocessor`.
+diesel, one vector per sample for the turbofan), via :func:`fdi_ros.plants.make_preprocessor`.
 
 A gap in the block counter (a dropped block) is logged and the partial segment across it is
 marked invalid by the core, so a lost message never yields numbers that look valid.
@@ -24,7 +24,7 @@ class PreprocessorNode(Node):
         self.declare_parameter("plant", "diesel", ParameterDescriptor(read_only=True))
         from fdi_msgs.msg import Features, SensorBlock
 
-        from fdi_ros.core.plants import make_preprocessor
+        from fdi_ros.plants import make_preprocessor
 
         self.pre = make_preprocessor(self.get_parameter("plant").value)
         self._fac = msgs.MessageFactory("rclpy")

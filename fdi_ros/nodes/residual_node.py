@@ -3,7 +3,7 @@
 Lifecycle (standard services ``/<node>/change_state``, ``/<node>/get_state``):
 
 * ``configure``: load the model named by the parameters (``model_id``, ``model``: a spec or
-  file understood by :func:`fdi_ros.core.residual_models.load_residual_model`); create the
+  file understood by :func:`fdi_ros.plants.load_residual_model`); create the
   residual publisher and the features subscription. A model that fails to load -> FAILURE,
   with the reason logged (rclpy would otherwise swallow it).
 * ``activate``: residuals are published from now on; the model's dynamic state is reset, so a
@@ -51,7 +51,7 @@ class ResidualNode(LifecycleNode):
     # -- lifecycle ------------------------------------------------------------------------------
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
         try:
-            from fdi_ros.core.residual_models import load_residual_model
+            from fdi_ros.plants import load_residual_model
 
             mid = self.model_id
             spec = self.get_parameter("model").value

@@ -1,4 +1,4 @@
-"""The turbofan as a streaming plant for the live graph (registered as plant ``"turbofan"``).
+"""The turbofan as a streaming plant for the live graph (its wing: :mod:`.wing`).
 
 :class:`TurbofanRunner` runs a turbofan scenario sample by sample (RK4 at Ts = 0.02 s) and
 emits sensor blocks of ``block_samples`` samples with channels ``XN2, XNH, WF36``; faults come
@@ -17,9 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from fdi_ros.core.plants import ROOT, _PendingTruth, register_plant
+from fdi_ros.core.plant_api import FaultQueue
 from fdi_ros.core.supervisor import fault_type
 from fdi_ros.core.types import FaultEvent, FeatureVector, SampleBlock
+from fdi_ros.plants import ROOT
 from fdi_ros.plants.turbofan import plant as tfp
 
 DEFAULT_SCENARIO = ROOT / "config" / "turbofan_hub_small_to_large.yaml"
@@ -66,7 +67,7 @@ class TurbofanRunner:
                                 deterioration=sc.deterioration).quality()
         self._rng = np.random.default_rng(sc.seed if seed is None else seed)
         self._faults: list[tuple[float, str, float, float]] = []  # (t, type, units, ramp_s)
-        self._truth = _PendingTruth()
+        self._truth = FaultQueue()
         for t, faults in sc.events:
             for kind, size in faults.items():
                 self.inject(FaultEvent(t=float(t), fault=f"{kind}_{size}" if isinstance(size, str)
@@ -174,5 +175,3 @@ class TurbofanPreprocessor:
         self._index = 0
         self._gap = False
 
-
-register_plant("turbofan", runner=TurbofanRunner, preprocessor=TurbofanPreprocessor)

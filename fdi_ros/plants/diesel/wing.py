@@ -1,0 +1,211 @@
+"""The diesel intake wing: streaming runner, crank-synchronous preprocessor, residual-model
+kinds (``diesel_reference``, ``diesel_fault_hypothesis``) and the bank builder, registered as
+plant ``"diesel"`` in :mod:`fdi_ros.plants`.
+
+The bank builder identifies, once, whatever model directory of a bank is missing: the nominal
+reference model set (LOLIMOT + tables + fault-free thresholds) and one fault-hypothesis model per
+fault, each identified on the identification cycle with its fault present.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from fdi_ros.core.graphconfig import GraphConfig
+from fdi_ros.core.plant_api import FaultQueue
+from fdi_ros.core.types import FaultEvent, FeatureVector, SampleBlock
+from fdi_ros.plants import ROOT, Wing
+from fdi_ros.plants.diesel.plant import FAULT_IDS, FAULT_UNITS, DieselParams
+
+DEFAULT_SCENARIO = ROOT / "config" / "scenarios" / "diesel_paper_op.yaml"
+# Size at which each fault-hypothesis model is identified (mid-range of the scenarios; the
+# hypothesis model estimates the size on line, so any size of that fault fits it).
+HYPOTHESIS_SIZES = {"crankcase_vent_open": 10.0, "leak_ic_engine": 5.0,
+                    "restriction_ic_engine": 0.7, "swirl_flap_closed": 1.0,
+                    "egr_stuck_open": 0.5, "egr_leaky": 4.0}
+HYPOTHESIS_WINDOW = 40  # segments over which a hypothesis estimates its fault size (0.6 s)
+BUILD_INFO = "build_info.json"
+REFERENCE_FILES = ("reference_models.json", "thresholds.json")
+
+
+class DieselRunner:
+    """The diesel intake plant running a scenario, one block of ``block_deg`` at a time."""
+
+    plant = "diesel"
+
+    def __init__(self, scenario: str | Path | dict | None = None, *,
+                 seed: int | None = None) -> None:
+        from fdi_ros.plants.diesel.plant import DieselIntakePlant
+        from fdi_ros.plants.diesel.scenario import load_scenario
+
+        sc = load_scenario(scenario if scenario is not None else DEFAULT_SCENARIO)
+        self.scenario = sc
+        self.sim = DieselIntakePlant(params=sc.params, seed=sc.seed if seed is None else seed,
+                                     dalpha_deg=sc.dalpha_deg)
+        self.sim.set_input_profile(sc.inputs_at)
+        self._truth = FaultQueue()
+        for ev in sc.faults:
+            self.inject(ev)
+        self._per_block = max(int(round(sc.block_deg / sc.dalpha_deg)), 1)
+        self._t = 0.0
+
+    @property
+    def t(self) -> float:
+        return self._t
+
+    @property
+    def done(self) -> bool:
+        return self._t >= self.scenario.duration_s
+
+    def next_block(self) -> SampleBlock:
+        block = self.sim.advance(self._per_block)
+        self._t = float(block.t[-1])
+        return block
+
+    def inject(self, event: FaultEvent) -> None:
+        self.sim.inject(event)
+        self._truth.add(event)
+
+    def pop_truth(self) -> list[FaultEvent]:
+        return self._truth.due(self._t)
+
+
+class DieselPreprocessor:
+    """Crank-synchronous segments (180 deg CA) of the diesel's sensor blocks.
+
+    A lost block leaves a crank-angle gap that the segmenter itself detects: the segment across
+    it is flagged invalid, so ``mark_gap`` has nothing to add.
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        from fdi_ros.core.crank import CrankSegmenter
+
+        p = DieselParams()
+        kwargs.setdefault("V_D", p.V_D)
+        kwargs.setdefault("R", p.R)
+        self.seg = CrankSegmenter(**kwargs)
+
+    def push(self, block: SampleBlock) -> list[FeatureVector]:
+        return self.seg.push(block)
+
+    def mark_gap(self) -> None:
+        pass
+
+    def reset(self) -> None:
+        self.seg.reset()
+
+
+def validate_fault(event: FaultEvent) -> None:
+    """Raise ValueError if the plant cannot apply ``event`` (fault id, unit, size range)."""
+    from fdi_ros.plants.diesel.plant import _FaultSchedule
+
+    _FaultSchedule().add(event)
+
+
+def _reference_dir_spec(path: Path) -> dict | None:
+    return {"type": "diesel_reference", "path": "."} \
+        if (path / "reference_models.json").exists() else None
+
+
+# -- bank builder ---------------------------------------------------------------------------------
+def reference_fingerprint(ref_dir: str | Path) -> str:
+    """Hash of the reference model set and thresholds a hypothesis model was built against:
+    a hypothesis is stale (and rebuilt) when the reference models change under it."""
+    h = hashlib.sha256()
+    for name in REFERENCE_FILES:
+        f = Path(ref_dir) / name
+        h.update(f.read_bytes() if f.exists() else b"-")
+    return h.hexdigest()[:16]
+
+
+def _hypothesis_current(spec: dict) -> bool:
+    d = Path(spec["hypothesis"])
+    if not (d / "hypothesis.json").exists() or not (d / BUILD_INFO).exists():
+        return False
+    try:
+        info = json.loads((d / BUILD_INFO).read_text())
+    except ValueError:
+        return False
+    return bool(info.get("reference") == reference_fingerprint(spec["path"]))
+
+
+def _missing(cfg: GraphConfig) -> list[tuple[str, dict]]:
+    out = []
+    for e in cfg.bank:
+        spec = cfg.resolve_spec(e.model)
+        if not isinstance(spec, dict):
+            continue
+        if spec.get("type") == "diesel_reference":
+            d = Path(spec["path"])
+            if not all((d / f).exists() for f in REFERENCE_FILES):
+                out.append((e.id, spec))
+        elif spec.get("type") == "diesel_fault_hypothesis" and not _hypothesis_current(spec):
+            out.append((e.id, spec))
+    return out
+
+
+def build_bank(cfg: GraphConfig, *, progress: bool = True, seed: int = 0,
+               log: Callable[[str], None] = print) -> list[str]:
+    """Identify every missing reference / hypothesis model of the bank; returns the ids built."""
+    todo = _missing(cfg)
+    if not todo:
+        return []
+    from fdi_ros.commands.identify import (
+        DEFAULT_DRIVE,
+        DEFAULT_IDENT,
+        build_models,
+        simulate_features,
+    )
+    from fdi_ros.plants.diesel.reference import ReferenceModelSet
+    from fdi_ros.plants.diesel.symptoms import identify_fault_hypothesis, load_symptom_config
+
+    built = []
+    for mid, spec in (s for s in todo if s[1]["type"] == "diesel_reference"):
+        t0 = time.perf_counter()
+        log(f"[bank] identifying the reference models {mid!r} -> {spec['path']}")
+        build_models(cfg.resolve(DEFAULT_IDENT), out=spec["path"], seed=seed,
+                     fault_free=cfg.resolve(DEFAULT_DRIVE), progress=progress)
+        built.append(mid)
+        log(f"[bank] {mid}: {time.perf_counter() - t0:.1f} s")
+    for i, (mid, spec) in enumerate(s for s in todo if s[1]["type"] != "diesel_reference"):
+        t0 = time.perf_counter()
+        mset = ReferenceModelSet.load(spec["path"])
+        scfg = load_symptom_config(spec["path"])
+        # the fault of this hypothesis: its bank entry's single fault
+        fault = next(iter(cfg.entry(mid).faults))
+        size = HYPOTHESIS_SIZES[fault]
+        log(f"[bank] identifying fault hypothesis {mid!r} ({fault} {size:g} "
+            f"{FAULT_UNITS[fault]}) -> {spec['hypothesis']}")
+        feats, _ = simulate_features(
+            cfg.resolve(DEFAULT_IDENT), seed=seed + 500 + i, progress=progress,
+            faults=[FaultEvent(t=5.0, fault=fault, size=size, size_unit=FAULT_UNITS[fault])])
+        hyp = identify_fault_hypothesis(mset, scfg, feats, fault=fault, size=size, t_from=6.0,
+                                        model_id=mid, window=HYPOTHESIS_WINDOW)
+        hyp.save(spec["hypothesis"])
+        (Path(spec["hypothesis"]) / BUILD_INFO).write_text(json.dumps(
+            {"reference": reference_fingerprint(spec["path"]), "fault": fault, "size": size,
+             "seed": seed + 500 + i, "window": HYPOTHESIS_WINDOW}))
+        built.append(mid)
+        log(f"[bank] {mid}: {time.perf_counter() - t0:.1f} s")
+    return built
+
+
+WING = Wing(
+    name="diesel",
+    runner=DieselRunner,
+    preprocessor=DieselPreprocessor,
+    residual_kinds=("diesel_reference", "diesel_fault_hypothesis"),
+    kinds_module="fdi_ros.plants.diesel.symptoms",
+    faults=FAULT_IDS,
+    validate_fault=validate_fault,
+    build_bank=build_bank,
+    model_dir_spec=_reference_dir_spec,
+    fst=ROOT / "config" / "diesel_fst.yaml",
+    reproduce="fdi_ros.commands.reproduce_diesel",
+    figures="fdi_ros.commands.figures_diesel",
+)

@@ -15,7 +15,7 @@ GROUP_HELP = {
     "bench": "benchmarks: print figures and ratios against a baseline measured in the same run",
     "reproduce": "reproduce a paper's experiment in simulation and compare with its numbers",
     "figures": "save the figures of a part (plant, identification) as PNG files",
-    "train": "train the models of a plant (e.g. the turbofan's Takagi-Sugeno node models)",
+    "train": "train the models of a plant (e.g. Takagi-Sugeno node models)",
 }
 
 

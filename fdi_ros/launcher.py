@@ -79,6 +79,10 @@ class Graph:
         else:
             sections.pop("fdi_replayer", None)
         plant = sections.get("fdi_plant")
+        # the plant id of the graph configuration, unless a node section names another
+        for node in ("fdi_plant", "fdi_preprocessor"):
+            if node in sections:
+                sections[node].setdefault("plant", self.cfg.plant)
         if plant and plant.get("scenario"):
             plant["scenario"] = self.cfg.resolve(str(plant["scenario"]))
         if record is not None:

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from fdi_ros.core.discrepancy import discover
-from fdi_ros.core.discrepancy import scenarios as sc
 from fdi_ros.core.types import FaultEvent
+from fdi_ros.plants.diesel import discrepancy_scenarios as sc
 
 
 @pytest.fixture(scope="module")
@@ -106,7 +106,7 @@ def test_two_hidden_effects_both_found(baseline):
 def test_reference_models_miss_the_boost_volume_filling(diesel_reference_dir):
     """The project's static eta_V reference (paper eq. 3) has no storage term: on a transient
     cycle the MAF residual follows dp2/dt (air stored in the boost volume)."""
-    from fdi_ros.core.discrepancy.reference_baseline import DieselReferenceBaseline
+    from fdi_ros.plants.diesel.discrepancy import DieselReferenceBaseline
 
     res, _ = discover(sc.plant_record(201),
                       DieselReferenceBaseline(path=str(diesel_reference_dir)))

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from fdi_ros.core.residual_models import load_residual_model, registered_types
+from fdi_ros.core.symptoms import moving_average
 from fdi_ros.core.types import ResidualVector
+from fdi_ros.plants import ROOT
 from fdi_ros.plants.diesel.symptoms import (
     PAPER_TABLE,
     RESIDUALS,
@@ -16,7 +18,6 @@ from fdi_ros.plants.diesel.symptoms import (
     calibrate_thresholds,
     isolate,
     load_fault_symptom_tables,
-    moving_average,
 )
 
 
@@ -50,12 +51,12 @@ def test_thresholds_cover_fault_free_data_and_detect_a_step():
     states = [gen.update(_rv(3000 + i, cfg.centre + step)) for i in range(8)]
     first = next(i for i, s in enumerate(states) if s.levels[0] != 0)
     assert states[first].levels[0] == -1 and first + 1 <= cfg.filter_len + cfg.debounce_on
-    assert states[-1].as_table_order() == (-1, 0, 0, 0, 0)
+    assert states[-1].in_order(SYMPTOMS) == (-1, 0, 0, 0, 0)
     assert states[-1].signature == "-,o,o,o,o"
 
 
 def test_debounce_rejects_a_single_spike_and_intense_level():
-    cfg = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(0.2,) * 5,
+    cfg = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(0.2,) * 5, names=RESIDUALS,
                         filter_len=1, debounce_on=3, debounce_off=2)
     gen = SymptomGenerator(config=cfg)
     seq = [0, 5, 0, 0, 2, 2, 2, 2, 5, 5, 0, 0, 0]
@@ -64,7 +65,7 @@ def test_debounce_rejects_a_single_spike_and_intense_level():
 
 
 def test_invalid_residuals_give_no_symptom_and_restart():
-    cfg = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(0.2,) * 5,
+    cfg = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(0.2,) * 5, names=RESIDUALS,
                         filter_len=1, debounce_on=1, debounce_off=1)
     gen = SymptomGenerator(config=cfg)
     assert gen.update(_rv(0, [3, 0, 0, 0, 0])).levels[0] == 1
@@ -97,7 +98,15 @@ def test_fault_symptom_table_file(tmp_path):
     p.write_text("tables:\n  x:\n    f: '+,?,o,o,o'\n")
     with pytest.raises(ValueError):
         load_fault_symptom_tables(p)
-    assert SYMPTOMS[0] == "s_eta"
+    # columns in another order than the diesel's symptoms: refused, not silently misread
+    p.write_text("symptoms: [s_Am, s_eta, s_Ap, s_phim, s_php]\n"
+                 "tables:\n  x:\n    leak_ic_engine: 'o,-,o,o,o'\n")
+    with pytest.raises(ValueError, match="columns"):
+        load_fault_symptom_tables(p)
+    # the shipped file's paper table is the paper's Fig. 14 as typed into the code
+    shipped = load_fault_symptom_tables(ROOT / "config" / "diesel_fst.yaml")
+    assert dict(shipped["paper"]) == dict(PAPER_TABLE)
+    assert shipped["paper"].columns == SYMPTOMS
 
 
 def test_registry_rejects_bad_specs(tmp_path):
@@ -132,7 +141,7 @@ def _fv(i, t, n, p2, fuel, valid=True):
 def test_quasi_stationarity_gate_and_storage_correction():
     from fdi_ros.plants.diesel.symptoms import QuasiStationarity
 
-    cfg = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(1.0,) * 5,
+    cfg = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(1.0,) * 5, names=RESIDUALS,
                         storage_coeff=500.0, settle_s=0.5, max_speed_change=50.0,
                         max_fuel_change=1.0, rate_lag=2)
     qs = QuasiStationarity(cfg)

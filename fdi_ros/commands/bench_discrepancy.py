@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     if args.plant == "liu_ice":
         data, model = _liu_record(args.data_dir, args.minutes)
     else:
-        from fdi_ros.core.discrepancy import scenarios as sc
+        from fdi_ros.plants.diesel import discrepancy_scenarios as sc
 
         model = sc.diesel_baseline()
         data = sc.plant_record(7, duration_s=60.0 * args.minutes)

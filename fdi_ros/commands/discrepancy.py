@@ -94,7 +94,7 @@ def build_baseline(args, say):
     if args.reference:
         if args.plant != "diesel":
             raise ValueError("--reference is for the diesel plant's reference models")
-        from fdi_ros.core.discrepancy.reference_baseline import DieselReferenceBaseline
+        from fdi_ros.plants.diesel.discrepancy import DieselReferenceBaseline
         from fdi_ros.plants.diesel.reference import MANIFEST
 
         if not (Path(args.reference) / MANIFEST).is_file():
@@ -116,8 +116,8 @@ def build_baseline(args, say):
         return identify_liu_ice([load_csv(f, mapping) for f in files],
                                 fraction=args.ident_fraction)
     # diesel: the plant's fault-free runs (cached: they take seconds to simulate and fit)
-    from fdi_ros.core.discrepancy import scenarios as sc
     from fdi_ros.core.meanvalue import SpeedDensityModel
+    from fdi_ros.plants.diesel import discrepancy_scenarios as sc
 
     if args.ident:
         from fdi_ros.core.measured import load_measured

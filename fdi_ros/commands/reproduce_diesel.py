@@ -102,7 +102,9 @@ def signature_after(states, k0: int) -> tuple[int, ...]:
     """Per symptom the most frequent level from the first post-fault segment on (table order)."""
     import numpy as np
 
-    L = np.array([s.as_table_order() for s in states[k0:] if s.valid])
+    from fdi_ros.plants.diesel.symptoms import SYMPTOMS
+
+    L = np.array([s.in_order(SYMPTOMS) for s in states[k0:] if s.valid])
     if L.size == 0:
         return (0,) * 5
     out = []

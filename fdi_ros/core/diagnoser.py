@@ -38,7 +38,8 @@ def _make_symptom_stage(cfg: GraphConfig) -> tuple[Any, Any, str]:
 
     import yaml
 
-    from fdi_ros.plants.diesel.symptoms import SymptomGenerator, load_fault_symptom_tables
+    from fdi_ros.core.fst import load_fault_symptom_tables
+    from fdi_ros.core.symptoms import SymptomGenerator
 
     s = cfg.symptoms
     conf = s.get("config")
@@ -104,9 +105,9 @@ class Diagnoser:
                 feed = {}  # without the reference model nothing can be said at this step
             active = symptoms is not None and symptoms.valid and any(symptoms.levels)
             if active and self.table is not None:
-                from fdi_ros.plants.diesel.symptoms import isolate
+                from fdi_ros.core.fst import isolate
 
-                candidates = tuple(isolate(symptoms.as_table_order(), self.table))
+                candidates = tuple(isolate(symptoms.by_name(), self.table))
             if not self.supervisor.isolated:
                 if not active:
                     # No symptom: the reference model explains the data by definition; the

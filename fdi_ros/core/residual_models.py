@@ -13,7 +13,7 @@ Registering a model kind (e.g. in a plant wing's own module)::
 
 A spec is a mapping with ``type:`` and kind-specific keys (paths relative to ``base_dir``);
 ``module:`` names a module to import first so that it can register its kind. The plant
-registry (:mod:`fdi_ros.plants`) installs, through :func:`set_kind_lookup`, how an unknown
+registry (:mod:`fdi_ros.plants`) installs, through :mod:`fdi_ros.core.kinds`, how an unknown
 kind finds the wing module that registers it; this module names no plant.
 """
 
@@ -25,10 +25,11 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
+from fdi_ros.core.kinds import Kinds, bare_model_dir_spec
 from fdi_ros.core.types import FeatureVector, ResidualVector
 
-__all__ = ["ResidualModel", "load_residual_model", "register_residual_model",
-           "registered_types", "set_kind_lookup"]
+__all__ = ["KINDS", "ResidualModel", "load_residual_model", "register_residual_model",
+           "registered_types"]
 
 
 @runtime_checkable
@@ -44,66 +45,19 @@ class ResidualModel(Protocol):
 
 
 Factory = Callable[..., ResidualModel]
-_REGISTRY: dict[str, Factory] = {}
-# Generic kinds of the core, imported on first use of the kind.
-_PROVIDERS = {"discrepancy_extended": "fdi_ros.core.discrepancy.residual"}
+# Generic kinds of the core are imported on first use; wings' kinds through the registry.
+KINDS: Kinds[Factory] = Kinds("residual model",
+                              {"discrepancy_extended": "fdi_ros.core.discrepancy.residual"})
 SPEC_FILES = ("residual_model.yaml", "residual_model.json")
-
-
-def _no_kind(kind: str) -> bool:
-    return False
-
-
-def _no_dir(path: Path) -> dict | None:
-    return None
-
-
-def _no_kinds() -> tuple[str, ...]:
-    return ()
-
-
-class _Lookup:
-    """Where kinds not registered yet are found (installed by the plant registry)."""
-
-    import_kind: Callable[[str], bool] = staticmethod(_no_kind)
-    dir_spec: Callable[[Path], dict | None] = staticmethod(_no_dir)
-    known: Callable[[], tuple[str, ...]] = staticmethod(_no_kinds)
-
-
-def set_kind_lookup(import_kind: Callable[[str], bool],
-                    dir_spec: Callable[[Path], dict | None],
-                    known: Callable[[], tuple[str, ...]]) -> None:
-    """Install the lookup of kinds provided outside the core: ``import_kind(kind)`` imports
-    the module registering ``kind`` (True if it knew one), ``dir_spec(path)`` gives the spec of
-    a bare model directory (or None), ``known()`` lists every kind it can provide."""
-    _Lookup.import_kind = staticmethod(import_kind)
-    _Lookup.dir_spec = staticmethod(dir_spec)
-    _Lookup.known = staticmethod(known)
 
 
 def register_residual_model(type_name: str) -> Callable[[Factory], Factory]:
     """Class/function decorator: make ``type_name`` loadable by :func:`load_residual_model`."""
-    if not type_name or not isinstance(type_name, str):
-        raise ValueError("a residual model type needs a non-empty name")
-
-    def deco(factory: Factory) -> Factory:
-        other = _REGISTRY.get(type_name)
-        if other is not None and other is not factory and \
-                getattr(other, "__qualname__", None) != getattr(factory, "__qualname__", None):
-            raise ValueError(f"residual model type {type_name!r} is already registered")
-        _REGISTRY[type_name] = factory
-        return factory
-
-    return deco
+    return KINDS.register(type_name)
 
 
 def registered_types() -> tuple[str, ...]:
-    for mod in set(_PROVIDERS.values()):
-        importlib.import_module(mod)
-    for kind in _Lookup.known():
-        if kind not in _REGISTRY:
-            _Lookup.import_kind(kind)
-    return tuple(sorted(_REGISTRY))
+    return KINDS.known()
 
 
 def _read_spec(path: Path) -> dict:
@@ -141,7 +95,7 @@ def load_residual_model(path_or_spec, *, model_id: str) -> ResidualModel:
             found = [path / f for f in SPEC_FILES if (path / f).exists()]
             if found:
                 spec, base_dir = _read_spec(found[0]), path
-            elif (bare := _Lookup.dir_spec(path)) is not None:
+            elif (bare := bare_model_dir_spec(path)) is not None:
                 spec, base_dir = bare, path
             else:
                 raise FileNotFoundError(f"{path} holds no {' or '.join(SPEC_FILES)}")
@@ -150,18 +104,15 @@ def load_residual_model(path_or_spec, *, model_id: str) -> ResidualModel:
     kind = spec.get("type")
     if not kind:
         raise ValueError(f"residual model spec lacks 'type:' (known: {registered_types()})")
-    module = spec.get("module") or _PROVIDERS.get(kind)
+    module = spec.get("module")
     if module:
         try:
             importlib.import_module(module)
         except ImportError as exc:
             raise ValueError(f"cannot import module {module!r} for type {kind!r}: {exc}") from exc
-    if kind not in _REGISTRY:
-        _Lookup.import_kind(kind)
-    if kind not in _REGISTRY:
-        raise ValueError(f"unknown residual model type {kind!r}; known: {registered_types()}")
+    factory = KINDS.get(kind)
     if not model_id:
         raise ValueError("model_id must not be empty")
     rest = {k: v for k, v in spec.items() if k not in ("type", "module")}
-    return _REGISTRY[kind](rest, base_dir=base_dir, model_id=model_id)
+    return factory(rest, base_dir=base_dir, model_id=model_id)
 

@@ -1,10 +1,11 @@
 """Plant simulator node: publishes sensor blocks at the plant's pace and fault ground truth.
 
-The plant (diesel or turbofan), its scenario (inputs over time, scheduled faults) and the block
-size come from :func:`fdi_ros.plants.make_runner`. A wall-clock timer advances plant time
-by ``realtime_factor`` x the elapsed wall time (0 = as fast as the graph takes it); every block
-is published on ``/fdi/sensor_block`` and plant time on ``/clock`` (so other nodes can run on
-sim time). Faults are injected at run time on ``/fdi/fault_inject`` (``t_s`` <= 0 means "now")
+The plant (a wing of :mod:`fdi_ros.plants`), its scenario (inputs over time, scheduled faults)
+and the block size come from :func:`fdi_ros.plants.make_runner`. A wall-clock timer advances
+plant time by ``realtime_factor`` x the elapsed wall time (0 = as fast as the graph takes it);
+every block is published on ``/fdi/sensor_block`` and plant time on ``/clock`` (so other nodes
+can run on sim time). Faults are injected at run time on ``/fdi/fault_inject`` (``t_s`` <= 0
+means "now")
 and by the scenario; each fault that takes effect is published on ``/fdi/fault_truth``
 (transient-local, so late joiners and the recorder see it).
 
@@ -30,7 +31,7 @@ class PlantNode(Node):
     def __init__(self) -> None:
         super().__init__("fdi_plant")
         ro = ParameterDescriptor(read_only=True)
-        self.declare_parameter("plant", "diesel", ro)
+        self.declare_parameter("plant", "", ro)
         self.declare_parameter("scenario", "", ro)
         self.declare_parameter("seed", 0, ro)
         self.declare_parameter("realtime_factor", 1.0, ParameterDescriptor(

@@ -1,10 +1,10 @@
-"""Preprocessor node: sensor blocks -> feature vectors (crank-synchronous segments for the
-diesel, one vector per sample for the turbofan), via :func:`fdi_ros.plants.make_preprocessor`.
+"""Preprocessor node: sensor blocks -> feature vectors (crank-synchronous segments for an
+engine, one vector per sample for others), via :func:`fdi_ros.plants.make_preprocessor`.
 
 A gap in the block counter (a dropped block) is logged and the partial segment across it is
 marked invalid by the core, so a lost message never yields numbers that look valid.
 
-Parameters: ``plant`` (diesel).
+Parameters: ``plant`` (a registered plant id; required).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from fdi_ros.nodes.common import DATA_QOS, run_node
 class PreprocessorNode(Node):
     def __init__(self) -> None:
         super().__init__("fdi_preprocessor")
-        self.declare_parameter("plant", "diesel", ParameterDescriptor(read_only=True))
+        self.declare_parameter("plant", "", ParameterDescriptor(read_only=True))
         from fdi_msgs.msg import Features, SensorBlock
 
         from fdi_ros.plants import make_preprocessor

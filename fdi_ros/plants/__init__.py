@@ -20,7 +20,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from fdi_ros.core import residual_models
+from fdi_ros.core import kinds, residual_models
 from fdi_ros.core.plant_api import PlantRunner, Preprocessor
 from fdi_ros.core.types import FaultEvent
 
@@ -49,8 +49,8 @@ class Wing:
 
     runner(scenario, seed=...)       streaming simulator (:class:`PlantRunner`)
     preprocessor(**options)          sensor blocks -> feature vectors (:class:`Preprocessor`)
-    residual_kinds                   ``type:`` names of the bank models this wing provides;
-    kinds_module                     the module that registers them (imported on first use)
+    kinds                            module -> names of the kinds it registers (residual-model
+                                     and discrepancy-baseline types; imported on first use)
     faults                           fault ids of the plant (empty: any name)
     validate_fault(event)            raises ValueError on an event the plant cannot apply
     build_bank(cfg, progress, seed, log)  identifies the missing models of a bank; returns
@@ -63,8 +63,7 @@ class Wing:
     name: str
     runner: Callable[..., PlantRunner]
     preprocessor: Callable[..., Preprocessor]
-    residual_kinds: tuple[str, ...] = ()
-    kinds_module: str | None = None
+    kinds: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
     faults: tuple[str, ...] = ()
     validate_fault: Callable[[FaultEvent], None] | None = None
     build_bank: Callable[..., list[str]] | None = None
@@ -140,12 +139,13 @@ def _all_wings() -> list[Wing]:
     return out
 
 
-def _import_kind(kind: str) -> bool:
-    """Import the module of the wing that provides residual-model kind ``kind``."""
+def _import_kind(name: str) -> bool:
+    """Import the wing module that registers kind ``name``."""
     for wing in _all_wings():
-        if kind in wing.residual_kinds and wing.kinds_module:
-            importlib.import_module(wing.kinds_module)
-            return True
+        for module, names in wing.kinds.items():
+            if name in names:
+                importlib.import_module(module)
+                return True
     return False
 
 
@@ -159,11 +159,11 @@ def _dir_spec(path: Path) -> dict | None:
 
 
 def _known_kinds() -> tuple[str, ...]:
-    return tuple(sorted({k for w in _all_wings() for k in w.residual_kinds}))
+    return tuple(sorted({k for w in _all_wings() for names in w.kinds.values() for k in names}))
 
 
-# The core's model loader finds the kinds (and bare model directories) of every wing here.
-residual_models.set_kind_lookup(_import_kind, _dir_spec, _known_kinds)
+# The core's kind tables (residual models, baselines) find every wing's kinds here.
+kinds.set_lookup(_import_kind, _known_kinds, _dir_spec)
 
 
 def load_residual_model(path_or_spec: Any, *, model_id: str) -> residual_models.ResidualModel:

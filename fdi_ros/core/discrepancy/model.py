@@ -25,26 +25,20 @@ import numpy as np
 
 from fdi_ros.core.discrepancy.context import build_contexts
 from fdi_ros.core.discrepancy.effects import Effect, effect_from_dict
+from fdi_ros.core.kinds import Kinds
 from fdi_ros.core.measured import Measured
 
 FORMAT = "fdi_ros.discrepancy.extended_model/1"
 
 
-def _baseline_types() -> dict[str, Any]:
-    from fdi_ros.core.discrepancy.reference_baseline import DieselReferenceBaseline
-    from fdi_ros.core.meanvalue import SpeedDensityModel
-
-    return {"speed_density": SpeedDensityModel,
-            "diesel_reference_baseline": DieselReferenceBaseline}
+# Baseline model types by name: the core's own, and those of the wings (found on first use).
+BASELINES: Kinds[Any] = Kinds("baseline model",
+                              {"speed_density": "fdi_ros.core.meanvalue:SpeedDensityModel"})
 
 
 def baseline_from_dict(d: dict):
     """Rebuild a baseline model saved with its ``to_dict()``."""
-    types = _baseline_types()
-    kind = d.get("type")
-    if kind not in types:
-        raise ValueError(f"unknown baseline model type {kind!r}; known: {sorted(types)}")
-    return types[kind].from_dict(d)
+    return BASELINES.get(d.get("type")).from_dict(d)
 
 
 @dataclass(frozen=True)

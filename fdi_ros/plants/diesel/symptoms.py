@@ -25,11 +25,20 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from fdi_ros.core.fst import LEVEL_CODES, FaultSymptomTable, signature_string
+from fdi_ros.core.fst import isolate as _isolate
+from fdi_ros.core.fst import load_fault_symptom_tables as _load_tables
+from fdi_ros.core.symptoms import (
+    SymptomConfig,
+    SymptomGenerator,
+    SymptomState,
+)
+from fdi_ros.core.symptoms import calibrate_thresholds as _calibrate
 from fdi_ros.core.types import FeatureVector, ResidualVector
 from fdi_ros.plants.diesel.reference import ReferenceModelSet, wrap_phase
 
@@ -45,20 +54,16 @@ _OUTPUT_OF = {"r_eta": "eta_v", "r_Am": "maf_amp", "r_phim": "maf_phase", "r_Ap"
 _SIGN = {"r_eta": -1.0, "r_Am": 1.0, "r_phim": 1.0, "r_Ap": 1.0, "r_php": 1.0}
 # Order of the paper's fault-symptom table.
 SYMPTOMS = ("s_eta", "s_Am", "s_Ap", "s_phim", "s_php")
-SYMPTOM_OF = {"r_eta": "s_eta", "r_Am": "s_Am", "r_Ap": "s_Ap", "r_phim": "s_phim",
-              "r_php": "s_php"}
-LEVEL_CODES = {"-": -1, "o": 0, "+": 1, "++": 2}
-_CODE_OF = {v: k for k, v in LEVEL_CODES.items()}
 
 # Schwarte & Isermann (2002), Fig. 14, columns (s_eta, s_Am, s_Ap, s_phim, s_php).
-PAPER_TABLE: dict[str, tuple[int, ...]] = {
+PAPER_TABLE = FaultSymptomTable(SYMPTOMS, {
     "crankcase_vent_open": (1, 0, 0, 0, 0),
     "leak_ic_engine": (-1, 0, 0, 0, 0),
     "restriction_ic_engine": (0, -1, -1, 1, 1),
     "swirl_flap_closed": (0, -1, -1, 0, 0),
     "egr_stuck_open": (2, -1, -1, 0, 0),
     "egr_leaky": (1, 0, 0, 0, 0),
-}
+})
 
 
 def parity_residuals(models: ReferenceModelSet, data: Mapping[str, np.ndarray], *,
@@ -86,270 +91,23 @@ def parity_residuals(models: ReferenceModelSet, data: Mapping[str, np.ndarray], 
     return R, valid
 
 
-def moving_average(R: np.ndarray, length: int) -> np.ndarray:
-    """Causal moving average over the last ``length`` rows (fewer at the start)."""
-    c = np.cumsum(np.vstack([np.zeros((1,) + R.shape[1:]), R]), axis=0)
-    k = np.arange(1, R.shape[0] + 1)
-    lo = np.maximum(k - length, 0)
-    cnt = (k - lo).reshape((-1,) + (1,) * (R.ndim - 1))
-    return (c[k] - c[lo]) / cnt
-
-
-@dataclass(frozen=True)
-class SymptomConfig:
-    """Thresholds and debouncing of the five symptoms.
-
-    Attributes
-    ----------
-    centre : fault-free mean of each residual (subtracted first), RESIDUALS order.
-    threshold : symptom threshold on the centred, filtered residual (units as the residual).
-    scale : fault-free (robust) standard deviation of the filtered residual, for reports.
-        Bank-model norms divide by ``threshold`` instead, so that a fault-free residual stays
-        below one whatever its distribution.
-    intense_factor : ``++`` when the residual exceeds this multiple of the threshold.
-    filter_len : moving-average length [segments]; debounce_on/off : persistence [segments].
-    storage_coeff : dynamic correction of eta_V for the air stored in the boost volume while
-        p2 changes: ``r_eta += storage_coeff * (dp2/dt) / (n p2)`` (identified from fault-free
-        transients by :func:`calibrate_from_fault_free`; 0 = static residual as in the paper).
-    settle_s, max_speed_change, max_fuel_change : quasi-stationarity gate on the ECU's inputs:
-        a segment is "not valid here" while engine speed [rpm] or injected fuel [mg/stroke]
-        has moved more than these within the last ``settle_s`` seconds (the static reference
-        models do not hold in transients; the gate looks at inputs, not at p2 or the MAF,
-        so that a fault's own transient does not switch its detection off).
-    rate_lag : dp2/dt of the storage correction is a backward difference over this many
-        segments.
-    """
-
-    centre: tuple[float, ...]
-    threshold: tuple[float, ...]
-    scale: tuple[float, ...]
-    intense_factor: float = 4.0
-    filter_len: int = 4
-    debounce_on: int = 2
-    debounce_off: int = 4
-    names: tuple[str, ...] = RESIDUALS
-    storage_coeff: float = 0.0
-    settle_s: float = 0.0
-    max_speed_change: float = float("inf")
-    max_fuel_change: float = float("inf")
-    rate_lag: int = 2
-
-    def __post_init__(self) -> None:
-        m = len(self.names)
-        if not (self.max_speed_change > 0 and self.max_fuel_change > 0 and self.settle_s >= 0
-                and self.rate_lag >= 1 and np.isfinite(self.storage_coeff)):
-            raise ValueError("gate limits must be > 0, settle_s >= 0, rate_lag >= 1, "
-                             "storage_coeff finite")
-        for name in ("centre", "threshold", "scale"):
-            v = tuple(float(x) for x in getattr(self, name))
-            if len(v) != m or not np.all(np.isfinite(v)):
-                raise ValueError(f"{name} needs {m} finite values")
-            object.__setattr__(self, name, v)
-        if min(self.threshold) <= 0 or min(self.scale) <= 0:
-            raise ValueError("thresholds and scales must be positive")
-        if self.intense_factor <= 1.0:
-            raise ValueError("intense_factor must be > 1")
-        if self.filter_len < 1 or self.debounce_on < 1 or self.debounce_off < 1:
-            raise ValueError("filter_len, debounce_on and debounce_off must be >= 1")
-        object.__setattr__(self, "names", tuple(self.names))
-
-    def to_dict(self) -> dict:
-        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
-
-    @classmethod
-    def from_dict(cls, d: Mapping) -> SymptomConfig:
-        unknown = set(d) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise ValueError(f"unknown symptom settings: {sorted(unknown)}")
-        return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()})
-
-
-def calibrate_thresholds(R: np.ndarray, valid: np.ndarray | None = None, *,
-                         k_sigma: float = 5.0, margin: float = 1.25, filter_len: int = 4,
-                         min_threshold: Sequence[float] | None = None,
-                         **settings) -> SymptomConfig:
-    """Thresholds from fault-free residuals (N, m), not tuned on any fault.
-
-    ``threshold = max(k_sigma * s, margin * max|f - c|, min_threshold)`` where ``f`` is the
-    filtered residual, ``c`` its median and ``s`` its robust standard deviation (1.4826 MAD):
-    a Gaussian-tail bound that also covers every fault-free excursion seen, with margin.
-    """
-    R = np.asarray(R, dtype=float)
-    if valid is not None:
-        R = R[np.asarray(valid, dtype=bool)]
-    R = R[np.all(np.isfinite(R), axis=1)]
-    if R.shape[0] < 20:
-        raise ValueError(f"need >= 20 valid fault-free residual rows, got {R.shape[0]}")
-    c = np.median(R, axis=0)
-    F = moving_average(R - c, filter_len)
-    s = 1.4826 * np.median(np.abs(F - np.median(F, axis=0)), axis=0)
-    s = np.where(s > 0, s, np.std(F, axis=0) + 1e-12)
-    thr = np.maximum(k_sigma * s, margin * np.abs(F).max(axis=0))
-    if min_threshold is not None:
-        thr = np.maximum(thr, np.asarray(min_threshold, dtype=float))
-    return SymptomConfig(centre=tuple(c), threshold=tuple(thr), scale=tuple(s),
-                         filter_len=filter_len, **settings)
-
-
-@dataclass(frozen=True)
-class SymptomState:
-    """Debounced symptoms after one residual vector (mirrors ``fdi_msgs/Symptoms``)."""
-
-    index: int
-    t: float
-    valid: bool
-    status: str
-    names: tuple[str, ...]
-    levels: tuple[int, ...]
-    residuals: tuple[float, ...]
-    threshold_low: tuple[float, ...]
-    threshold_high: tuple[float, ...]
-    threshold_intense: tuple[float, ...]
-
-    @property
-    def signature(self) -> str:
-        return signature_string(self.levels)
-
-    def as_table_order(self) -> tuple[int, ...]:
-        """Levels in the fault-symptom table order :data:`SYMPTOMS`."""
-        d = dict(zip(self.names, self.levels))
-        return tuple(d.get(s, 0) for s in SYMPTOMS)
-
-
-def signature_string(levels: Sequence[int]) -> str:
-    """``(1, 0, -1)`` -> ``"+,o,-"``."""
-    return ",".join(_CODE_OF[int(v)] for v in levels)
-
-
-@dataclass
-class SymptomGenerator:
-    """Thresholds + debouncing, stateful per stream of ResidualVectors of the nominal model.
-
-    ``update`` returns levels in the symptom order ``s_<residual>`` of the config's names
-    (:data:`SYMPTOMS` for the diesel plant after :meth:`SymptomState.as_table_order`).
-    """
-
-    config: SymptomConfig
-    _buf: deque = field(init=False, repr=False)
-    _level: np.ndarray = field(init=False, repr=False)
-    _cand: np.ndarray = field(init=False, repr=False)
-    _count: np.ndarray = field(init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        if not isinstance(self.config, SymptomConfig):
-            self.config = SymptomConfig.from_dict(self.config)
-        self.reset()
-
-    def reset(self) -> None:
-        m = len(self.config.names)
-        self._buf = deque(maxlen=self.config.filter_len)
-        self._level = np.zeros(m, dtype=int)
-        self._cand = np.zeros(m, dtype=int)
-        self._count = np.zeros(m, dtype=int)
-
-    @property
-    def symptom_names(self) -> tuple[str, ...]:
-        return tuple(SYMPTOM_OF.get(r, "s_" + r.removeprefix("r_")) for r in self.config.names)
-
-    def _values(self, rv: ResidualVector) -> np.ndarray:
-        if tuple(rv.names) == self.config.names:
-            return np.asarray(rv.values, dtype=float)
-        try:
-            return np.array([rv.values[list(rv.names).index(k)] for k in self.config.names],
-                            dtype=float)
-        except ValueError:
-            raise ValueError(f"residual vector {rv.names} lacks {self.config.names}") from None
-
-    def update(self, rv: ResidualVector) -> SymptomState:
-        cfg = self.config
-        thr = np.asarray(cfg.threshold)
-        c = np.asarray(cfg.centre)
-        m = len(cfg.names)
-        thr_t = (tuple(c - thr), tuple(c + thr), tuple(c + cfg.intense_factor * thr))
-        v = self._values(rv)
-        if not rv.valid or not np.all(np.isfinite(v)):
-            # Not valid here: no symptom, and the filter restarts when data is valid again.
-            self.reset()
-            return SymptomState(rv.index, rv.t, False, rv.status or "residuals not valid",
-                                self.symptom_names, (0,) * m, tuple(np.full(m, np.nan)),
-                                *thr_t)
-        self._buf.append(v - c)
-        f = np.mean(self._buf, axis=0)
-        raw = np.where(f < -thr, -1, np.where(f > cfg.intense_factor * thr, 2,
-                                              np.where(f > thr, 1, 0)))
-        same = raw == self._cand
-        self._count = np.where(same, self._count + 1, 1)
-        self._cand = raw
-        need = np.where(raw == 0, cfg.debounce_off, cfg.debounce_on)
-        switch = (raw != self._level) & (self._count >= need)
-        # "+" -> "++" (and back) is a change of intensity, not of sign: no extra delay.
-        grow = (self._level != 0) & (raw != 0) & (np.sign(raw) == np.sign(self._level))
-        self._level = np.where(switch | grow, raw, self._level)
-        return SymptomState(rv.index, rv.t, True, "", self.symptom_names,
-                            tuple(int(x) for x in self._level), tuple(f + c), *thr_t)
+def calibrate_thresholds(R: np.ndarray, valid: np.ndarray | None = None,
+                         **kwargs: Any) -> SymptomConfig:
+    """:func:`fdi_ros.core.symptoms.calibrate_thresholds` for the five parity residuals."""
+    kwargs.setdefault("names", RESIDUALS)
+    return _calibrate(R, valid, **kwargs)
 
 
 def isolate(symptom_levels: Sequence[int] | Mapping[str, int],
             table: Mapping[str, Sequence[int]], *, max_mismatch: int = 0) -> list[str]:
-    """Candidate faults whose table signature matches the symptoms.
-
-    ``symptom_levels`` in :data:`SYMPTOMS` order (or a mapping by symptom name). Exact matches
-    first; if there is none, faults whose signature matches in sign (``+`` == ``++``); if
-    there is none and ``max_mismatch > 0``, the faults at the smallest distance, if it is at
-    most ``max_mismatch`` (distance: sum over symptoms of |sign(table) - sign(observed)|, so a
-    symptom missing or extra counts 1, one of opposite sign 2). No symptom -> no candidate.
-    """
-    if isinstance(symptom_levels, Mapping):
-        obs = np.array([int(symptom_levels.get(s, 0)) for s in SYMPTOMS])
-    else:
-        obs = np.asarray(symptom_levels, dtype=int)
-    if not obs.any():
-        return []
-    exact, signed, dist = [], [], {}
-    for fault, sig in table.items():
-        sig = np.asarray(sig, dtype=int)
-        if sig.shape != obs.shape:
-            raise ValueError(f"signature of {fault} has {sig.size} symptoms, observed {obs.size}")
-        if np.array_equal(sig, obs):
-            exact.append(fault)
-        elif np.array_equal(np.sign(sig), np.sign(obs)):
-            signed.append(fault)
-        # A symptom of opposite sign weighs 2, a missing or extra one 1.
-        dist[fault] = int(np.sum(np.abs(np.sign(sig) - np.sign(obs))))
-    if exact or signed or max_mismatch <= 0:
-        return exact or signed
-    best = min(dist.values())
-    return [f for f, d in dist.items() if d == best] if best <= max_mismatch else []
+    """:func:`fdi_ros.core.fst.isolate` with the columns :data:`SYMPTOMS` by default."""
+    return _isolate(symptom_levels, table, max_mismatch=max_mismatch,
+                    columns=getattr(table, "columns", SYMPTOMS))
 
 
-def _parse_signature(sig) -> tuple[int, ...]:
-    if isinstance(sig, str):
-        sig = [s.strip() for s in sig.split(",")]
-    try:
-        out = tuple(LEVEL_CODES[s] if isinstance(s, str) else int(s) for s in sig)
-    except KeyError as exc:
-        raise ValueError(f"unknown symptom level {exc}; use one of {list(LEVEL_CODES)}") from None
-    if len(out) != len(SYMPTOMS) or not set(out) <= set(LEVEL_CODES.values()):
-        raise ValueError(f"a signature needs {len(SYMPTOMS)} levels in {list(LEVEL_CODES)}")
-    return out
-
-
-def load_fault_symptom_tables(path) -> dict[str, dict[str, tuple[int, ...]]]:
-    """Read the fault-symptom tables of a YAML file (``tables: {name: {fault: "+,o,o,o,o"}}``)."""
-    import yaml
-
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"no fault-symptom table file {path}")
-    doc = yaml.safe_load(path.read_text()) or {}
-    cols = tuple(doc.get("symptoms", SYMPTOMS))
-    if cols != SYMPTOMS:
-        raise ValueError(f"{path}: symptom columns must be {list(SYMPTOMS)}, got {list(cols)}")
-    tables = doc.get("tables")
-    if not isinstance(tables, dict) or not tables:
-        raise ValueError(f"{path}: no 'tables' mapping")
-    return {name: {f: _parse_signature(s) for f, s in tab.items()}
-            for name, tab in tables.items()}
+def load_fault_symptom_tables(path: str | Path) -> dict[str, FaultSymptomTable]:
+    """The diesel fault-symptom tables of a YAML file (columns :data:`SYMPTOMS`)."""
+    return _load_tables(path, SYMPTOMS)
 
 
 def residual_vector(models: ReferenceModelSet, fv: FeatureVector, *, model_id: str = "nominal",
@@ -823,6 +581,7 @@ def calibrate_from_fault_free(models: ReferenceModelSet, features: Sequence[Feat
     """
     feats = list(features)
     probe = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(1.0,) * 5,
+                          names=RESIDUALS,
                           rate_lag=rate_lag)
     rvs = stream_residuals(models, feats, config=probe)   # static, not gated
     qs = QuasiStationarity(probe)
@@ -841,6 +600,7 @@ def calibrate_from_fault_free(models: ReferenceModelSet, features: Sequence[Feat
         den = float(x @ x)
         coeff = float(x @ r / den) if den > 0 else 0.0
     gate = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(1.0,) * 5,
+                         names=RESIDUALS,
                          rate_lag=rate_lag, storage_coeff=coeff,
                          settle_s=settle_s, max_speed_change=max_speed_change,
                          max_fuel_change=max_fuel_change)

@@ -19,8 +19,7 @@ import math
 import numpy as np
 
 from fdi_ros.core.measured import Measured, segments_from_gaps
-
-DIESEL_DISPLACEMENT_L = 2.0
+from fdi_ros.plants.diesel.discrepancy import DISPLACEMENT_L as DIESEL_DISPLACEMENT_L
 
 
 def _smooth_random(rng: np.random.Generator, t: np.ndarray, lo: float, hi: float,

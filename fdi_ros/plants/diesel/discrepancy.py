@@ -13,17 +13,22 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fdi_ros.core.discrepancy.context import LeakSpec
+from fdi_ros.core.discrepancy.model import BASELINES
 from fdi_ros.core.measured import Measured
+from fdi_ros.plants.diesel.plant import DieselParams
 
-R_DIESEL = 287.0  # J/(kg K), as in the plant and the reference identification
+# as in the plant and the reference identification (one source: the plant's parameters)
+R_DIESEL = DieselParams().R  # J/(kg K)
+DISPLACEMENT_L = DieselParams().V_D * 1e3
 
 
+@BASELINES.register("diesel_reference_baseline")
 @dataclass(frozen=True)
 class DieselReferenceBaseline:
     """Speed-density air flow with the identified reference eta_V tables."""
 
     path: str
-    displacement_l: float = 2.0
+    displacement_l: float = DISPLACEMENT_L
     use_tables: bool = True
     kind: str = field(default="diesel_reference_baseline", init=False)
 

@@ -1,0 +1,128 @@
+"""Fault-symptom tables and isolation by them.
+
+A table maps each fault to its signature: one symptom level per column (``-`` -1, ``o`` 0,
+``+`` 1, ``++`` 2). :func:`isolate` compares an observed symptom pattern with the table; a table
+file (YAML) names its columns (``symptoms: [...]``) and holds one or more tables
+(``tables: {name: {fault: "+,o,o"}}``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["LEVEL_CODES", "FaultSymptomTable", "isolate", "load_fault_symptom_tables",
+           "parse_signature", "signature_string"]
+
+LEVEL_CODES = {"-": -1, "o": 0, "+": 1, "++": 2}
+_CODE_OF = {v: k for k, v in LEVEL_CODES.items()}
+
+
+def signature_string(levels: Sequence[int]) -> str:
+    """``(1, 0, -1)`` -> ``"+,o,-"``."""
+    return ",".join(_CODE_OF[int(v)] for v in levels)
+
+
+class FaultSymptomTable(dict[str, tuple[int, ...]]):
+    """Fault -> signature, with the symptom names of the signature's columns."""
+
+    def __init__(self, columns: Sequence[str],
+                 rows: Mapping[str, Sequence[int]] | None = None) -> None:
+        self.columns = tuple(columns)
+        super().__init__({f: tuple(int(x) for x in s) for f, s in (rows or {}).items()})
+        for fault, sig in self.items():
+            if len(sig) != len(self.columns):
+                raise ValueError(f"signature of {fault} has {len(sig)} symptoms, the table "
+                                 f"{len(self.columns)} ({list(self.columns)})")
+
+
+def _observed(symptom_levels: Sequence[int] | Mapping[str, int],
+              columns: Sequence[str] | None) -> np.ndarray:
+    if isinstance(symptom_levels, Mapping):
+        if columns is None:
+            raise ValueError("symptoms by name need a table with named columns")
+        unknown = set(symptom_levels) - set(columns)
+        if unknown:
+            raise ValueError(f"symptoms {sorted(unknown)} are not columns of the table "
+                             f"{list(columns)}")
+        return np.array([int(symptom_levels.get(s, 0)) for s in columns])
+    return np.asarray(symptom_levels, dtype=int)
+
+
+def isolate(symptom_levels: Sequence[int] | Mapping[str, int],
+            table: Mapping[str, Sequence[int]], *, max_mismatch: int = 0,
+            columns: Sequence[str] | None = None) -> list[str]:
+    """Candidate faults whose table signature matches the symptoms.
+
+    ``symptom_levels`` in the table's column order, or a mapping by symptom name (``columns``,
+    default the table's own). Exact matches first; if there is none, faults whose signature
+    matches in sign (``+`` == ``++``); if there is none and ``max_mismatch > 0``, the faults at
+    the smallest distance, if it is at most ``max_mismatch`` (distance: sum over symptoms of
+    |sign(table) - sign(observed)|, so a symptom missing or extra counts 1, one of opposite
+    sign 2). No symptom -> no candidate.
+    """
+    obs = _observed(symptom_levels, columns or getattr(table, "columns", None))
+    if not obs.any():
+        return []
+    exact, signed, dist = [], [], {}
+    for fault, row in table.items():
+        sig = np.asarray(row, dtype=int)
+        if sig.shape != obs.shape:
+            raise ValueError(f"signature of {fault} has {sig.size} symptoms, observed {obs.size}")
+        if np.array_equal(sig, obs):
+            exact.append(fault)
+        elif np.array_equal(np.sign(sig), np.sign(obs)):
+            signed.append(fault)
+        # A symptom of opposite sign weighs 2, a missing or extra one 1.
+        dist[fault] = int(np.sum(np.abs(np.sign(sig) - np.sign(obs))))
+    if exact or signed or max_mismatch <= 0:
+        return exact or signed
+    best = min(dist.values())
+    return [f for f, d in dist.items() if d == best] if best <= max_mismatch else []
+
+
+def parse_signature(sig: str | Sequence[str | int], n: int) -> tuple[int, ...]:
+    """``"+,o,-"`` (or a list of codes / integers) -> levels; ``n`` symptoms expected."""
+    if isinstance(sig, str):
+        sig = [s.strip() for s in sig.split(",")]
+    try:
+        out = tuple(LEVEL_CODES[s] if isinstance(s, str) else int(s) for s in sig)
+    except KeyError as exc:
+        raise ValueError(f"unknown symptom level {exc}; use one of {list(LEVEL_CODES)}") from None
+    if len(out) != n or not set(out) <= set(LEVEL_CODES.values()):
+        raise ValueError(f"a signature needs {n} levels in {list(LEVEL_CODES)}")
+    return out
+
+
+def load_fault_symptom_tables(path: str | Path, columns: Sequence[str] | None = None
+                              ) -> dict[str, FaultSymptomTable]:
+    """The tables of a YAML file; ``columns``, if given, must equal the file's ``symptoms:``."""
+    import yaml
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"no fault-symptom table file {path}")
+    try:
+        doc = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{path}: not YAML: {exc}") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: a fault-symptom table file must be a mapping")
+    cols = doc.get("symptoms", columns)
+    if not isinstance(cols, list | tuple) or not cols:
+        raise ValueError(f"{path}: no 'symptoms' list naming the columns")
+    cols = tuple(str(c) for c in cols)
+    if columns is not None and cols != tuple(columns):
+        raise ValueError(f"{path}: symptom columns must be {list(columns)}, got {list(cols)}")
+    tables = doc.get("tables")
+    if not isinstance(tables, dict) or not tables:
+        raise ValueError(f"{path}: no 'tables' mapping")
+    out = {}
+    for name, tab in tables.items():
+        if not isinstance(tab, dict):
+            raise ValueError(f"{path}: table {name!r} must map faults to signatures")
+        out[str(name)] = FaultSymptomTable(
+            cols, {str(f): parse_signature(s, len(cols)) for f, s in tab.items()})
+    return out

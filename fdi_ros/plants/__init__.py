@@ -4,8 +4,10 @@ A wing is one sub-package per plant (simulator or measured-data source, scenario
 preprocessor, residual-model kinds, identification, bank builder, fault-symptom table, figures,
 reproduction). Each wing module defines ``WING = Wing(...)``; this module finds it by name from
 :data:`TABLE` (the wings shipped here), from the ``fdi_ros.plants`` entry-point group (wings of
-other packages: ``name = "package.module"``) or from :func:`register_wing` (e.g. a test's
-wing). The core (``fdi_ros.core``), nodes and launcher ask this registry and name no plant.
+other packages: ``name = "package.module"``), from the environment variable ``FDI_ROS_WINGS``
+(``name=module,...``: every process of a graph sees the same wings without installing a
+package) or from :func:`register_wing` (this process only). The core (``fdi_ros.core``), nodes
+and launcher ask this registry and name no plant.
 
 Importing this module is cheap: wing modules are imported on first use, and a wing's heavy
 parts (simulator, identification) only when the corresponding factory is called.
@@ -14,6 +16,7 @@ parts (simulator, identification) only when the corresponding factory is called.
 from __future__ import annotations
 
 import importlib
+import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from importlib import metadata
@@ -33,6 +36,7 @@ __all__ = ["ROOT", "TABLE", "Wing", "ensure_bank", "get_wing", "known_plants",
 
 ROOT = Path(__file__).resolve().parents[2]  # the repository (config/, bags/, build/)
 ENTRY_POINT_GROUP = "fdi_ros.plants"
+ENV_VAR = "FDI_ROS_WINGS"
 
 # The wings shipped with fdi_ros: plant name -> module defining ``WING``.
 TABLE: dict[str, str] = {
@@ -93,15 +97,31 @@ def _entry_points() -> dict[str, str]:
     return {ep.name: ep.value for ep in eps}
 
 
+def _from_env() -> dict[str, str]:
+    out = {}
+    for item in os.environ.get(ENV_VAR, "").split(","):
+        if item.strip():
+            name, sep, module = item.partition("=")
+            if not sep or not name.strip() or not module.strip():
+                raise ValueError(f"{ENV_VAR}: expected name=module, got {item!r}")
+            out[name.strip()] = module.strip()
+    return out
+
+
+def _modules() -> dict[str, str]:
+    """Plant name -> wing module; the shipped table wins over the others."""
+    return {**_entry_points(), **_from_env(), **TABLE}
+
+
 def known_plants() -> list[str]:
-    return sorted(set(TABLE) | set(_entry_points()) | set(_WINGS))
+    return sorted(set(_modules()) | set(_WINGS))
 
 
 def get_wing(name: str) -> Wing:
     """The wing called ``name`` (imported on first use); ValueError names the known ones."""
     if name in _WINGS:
         return _WINGS[name]
-    module = TABLE.get(name) or _entry_points().get(name)
+    module = _modules().get(name)
     if module is None:
         raise ValueError(f"unknown plant {name!r}; known: {known_plants()}")
     wing = getattr(importlib.import_module(module), "WING", None)

@@ -23,7 +23,7 @@ import importlib
 import json
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 from fdi_ros.core.kinds import Kinds, bare_model_dir_spec
 from fdi_ros.core.types import FeatureVector, ResidualVector
@@ -60,25 +60,27 @@ def registered_types() -> tuple[str, ...]:
     return KINDS.known()
 
 
-def _read_spec(path: Path) -> dict:
+def _read_spec(path: Path) -> dict[str, Any]:
     text = path.read_text()
     if path.suffix == ".json":
         try:
-            return json.loads(text)
+            doc = json.loads(text)
         except json.JSONDecodeError as exc:
             raise ValueError(f"{path}: not JSON: {exc}") from exc
-    import yaml
+    else:
+        import yaml
 
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{path}: not YAML: {exc}") from exc
+        try:
+            doc = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise ValueError(f"{path}: not YAML: {exc}") from exc
     if not isinstance(doc, dict):
         raise ValueError(f"{path}: a residual model spec must be a mapping")
     return doc
 
 
-def load_residual_model(path_or_spec, *, model_id: str) -> ResidualModel:
+def load_residual_model(path_or_spec: str | Path | Mapping[str, Any], *,
+                        model_id: str) -> ResidualModel:
     """Build one bank model from a spec mapping, a spec file, or a model directory.
 
     A directory is read through its ``residual_model.yaml`` (or ``.json``), else through the

@@ -35,7 +35,8 @@ def moving_average(R: np.ndarray, length: int) -> np.ndarray:
     k = np.arange(1, R.shape[0] + 1)
     lo = np.maximum(k - length, 0)
     cnt = (k - lo).reshape((-1,) + (1,) * (R.ndim - 1))
-    return (c[k] - c[lo]) / cnt
+    out: np.ndarray = (c[k] - c[lo]) / cnt
+    return out
 
 
 @dataclass(frozen=True)
@@ -102,15 +103,16 @@ class SymptomConfig:
             raise ValueError("filter_len, debounce_on and debounce_off must be >= 1")
         object.__setattr__(self, "names", tuple(self.names))
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
 
     @classmethod
-    def from_dict(cls, d: Mapping) -> SymptomConfig:
+    def from_dict(cls, d: Mapping[str, Any]) -> SymptomConfig:
         unknown = set(d) - set(cls.__dataclass_fields__)
         if unknown:
             raise ValueError(f"unknown symptom settings: {sorted(unknown)}")
-        return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()})
+        kw: dict[str, Any] = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()}
+        return cls(**kw)
 
 
 def calibrate_thresholds(R: np.ndarray, valid: np.ndarray | None = None, *,
@@ -177,7 +179,7 @@ class SymptomGenerator:
     """
 
     config: SymptomConfig
-    _buf: deque = field(init=False, repr=False)
+    _buf: deque[np.ndarray] = field(init=False, repr=False)
     _level: np.ndarray = field(init=False, repr=False)
     _cand: np.ndarray = field(init=False, repr=False)
     _count: np.ndarray = field(init=False, repr=False)

@@ -176,6 +176,8 @@ def build_bank(cfg: GraphConfig, *, progress: bool = True, seed: int = 0,
         t0 = time.perf_counter()
         mset = ReferenceModelSet.load(spec["path"])
         scfg = load_symptom_config(spec["path"])
+        if scfg is None:
+            raise ValueError(f"{spec['path']}: no thresholds for the hypothesis {mid!r}")
         # the fault of this hypothesis: its bank entry's single fault
         fault = next(iter(cfg.entry(mid).faults))
         size = HYPOTHESIS_SIZES[fault]

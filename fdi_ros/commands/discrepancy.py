@@ -73,13 +73,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def load_baseline_file(path: Path):
     from fdi_ros.core.discrepancy.model import FORMAT, ExtendedModel, baseline_from_dict
+    from fdi_ros.core.files import read_document
 
-    if not path.is_file():
-        raise FileNotFoundError(f"baseline model {path} not found")
-    try:
-        d = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not valid JSON ({exc})") from None
+    d = read_document(path, "baseline model", fmt="json")
     if d.get("format") == FORMAT:
         return ExtendedModel.from_dict(d).baseline
     return baseline_from_dict(d)

@@ -34,21 +34,14 @@ def _make_symptom_stage(cfg: GraphConfig) -> tuple[Any, Any, str]:
     """(SymptomGenerator, fault-symptom table or None, reference model id) from the config."""
     if not cfg.symptoms:
         return None, None, ""
-    import json
-
-    import yaml
-
     from fdi_ros.core.fst import load_fault_symptom_tables
-    from fdi_ros.core.symptoms import SymptomGenerator
+    from fdi_ros.core.symptoms import SymptomGenerator, load_thresholds
 
     s = cfg.symptoms
     conf = s.get("config")
     if isinstance(conf, str):
-        path = cfg.resolve(conf)
-        with open(path) as f:
-            conf = json.load(f) if path.endswith(".json") else yaml.safe_load(f)
-        conf = conf.get("symptoms", conf)
-    if not isinstance(conf, dict):
+        conf = load_thresholds(cfg.resolve(conf))
+    elif not isinstance(conf, dict):
         raise ValueError(f"{cfg.path}: symptoms.config must be a mapping or a file")
     table = None
     if s.get("table"):

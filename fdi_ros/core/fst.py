@@ -99,15 +99,10 @@ def parse_signature(sig: str | Sequence[str | int], n: int) -> tuple[int, ...]:
 def load_fault_symptom_tables(path: str | Path, columns: Sequence[str] | None = None
                               ) -> dict[str, FaultSymptomTable]:
     """The tables of a YAML file; ``columns``, if given, must equal the file's ``symptoms:``."""
-    import yaml
+    from fdi_ros.core.files import read_document
 
     path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"no fault-symptom table file {path}")
-    try:
-        doc = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{path}: not YAML: {exc}") from None
+    doc = read_document(path, "fault-symptom table file", fmt="yaml") or {}
     if not isinstance(doc, dict):
         raise ValueError(f"{path}: a fault-symptom table file must be a mapping")
     cols = doc.get("symptoms", columns)

@@ -23,8 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
+from fdi_ros.core.files import read_document
 from fdi_ros.core.supervisor import BankModel
 
 KNOWN_KEYS = {"plant", "bank", "t0_s", "symptoms", "stale_s", "node_timeout_s", "description"}
@@ -83,12 +82,7 @@ class GraphConfig:
 def load_graph_config(path: str | Path) -> GraphConfig:
     """Read and validate a graph configuration file (clear errors for malformed files)."""
     p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"graph configuration {p} not found")
-    try:
-        doc = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{p}: not valid YAML: {exc}") from exc
+    doc = read_document(p, "graph configuration", fmt="yaml")
     if not isinstance(doc, dict) or "fdi_graph" not in doc:
         raise ValueError(f"{p}: no 'fdi_graph' section")
     g = doc["fdi_graph"]

@@ -189,14 +189,9 @@ class LookupTable:
 
     @classmethod
     def load(cls, path) -> LookupTable:
-        path = Path(path)
-        if not path.exists():
-            raise FileNotFoundError(f"no look-up table at {path}")
-        try:
-            d = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: not JSON: {exc}") from exc
-        return cls.from_dict(d)
+        from fdi_ros.core.files import read_document
+
+        return cls.from_dict(read_document(path, "look-up table", fmt="json"))
 
 
 def table_error(model: Callable[[np.ndarray], np.ndarray], table: LookupTable, X) -> dict:

@@ -20,11 +20,11 @@ kind finds the wing module that registers it; this module names no plant.
 from __future__ import annotations
 
 import importlib
-import json
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
+from fdi_ros.core.files import read_document
 from fdi_ros.core.kinds import Kinds, bare_model_dir_spec
 from fdi_ros.core.types import FeatureVector, ResidualVector
 
@@ -61,19 +61,7 @@ def registered_types() -> tuple[str, ...]:
 
 
 def _read_spec(path: Path) -> dict[str, Any]:
-    text = path.read_text()
-    if path.suffix == ".json":
-        try:
-            doc = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: not JSON: {exc}") from exc
-    else:
-        import yaml
-
-        try:
-            doc = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
-            raise ValueError(f"{path}: not YAML: {exc}") from exc
+    doc = read_document(path, "residual model spec")
     if not isinstance(doc, dict):
         raise ValueError(f"{path}: a residual model spec must be a mapping")
     return doc

@@ -13,15 +13,17 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from fdi_ros.core.files import read_document
 from fdi_ros.core.fst import signature_string
 from fdi_ros.core.types import ResidualVector
 
 __all__ = ["SymptomConfig", "SymptomGenerator", "SymptomState", "calibrate_thresholds",
-           "moving_average", "symptom_name"]
+           "load_thresholds", "moving_average", "symptom_name"]
 
 
 def symptom_name(residual: str) -> str:
@@ -113,6 +115,20 @@ class SymptomConfig:
             raise ValueError(f"unknown symptom settings: {sorted(unknown)}")
         kw: dict[str, Any] = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()}
         return cls(**kw)
+
+
+def load_thresholds(path: str | Path) -> SymptomConfig:
+    """The one loader of threshold files (JSON or YAML; the settings may sit under a
+    ``symptoms:`` key)."""
+    doc = read_document(path, "threshold file")
+    if isinstance(doc, Mapping) and isinstance(doc.get("symptoms"), Mapping):
+        doc = doc["symptoms"]
+    if not isinstance(doc, Mapping):
+        raise ValueError(f"{path}: thresholds must be a mapping")
+    try:
+        return SymptomConfig.from_dict(doc)
+    except TypeError as exc:
+        raise ValueError(f"{path}: malformed thresholds: {exc}") from None
 
 
 def calibrate_thresholds(R: np.ndarray, valid: np.ndarray | None = None, *,

@@ -119,11 +119,6 @@ class ExtendedModel:
 
     @classmethod
     def load(cls, path: str | Path) -> ExtendedModel:
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"extended model {path} not found")
-        try:
-            d = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: not valid JSON ({exc})") from None
-        return cls.from_dict(d)
+        from fdi_ros.core.files import read_document
+
+        return cls.from_dict(read_document(path, "extended model", fmt="json"))

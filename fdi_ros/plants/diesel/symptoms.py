@@ -37,6 +37,7 @@ from fdi_ros.core.symptoms import (
     SymptomConfig,
     SymptomGenerator,
     SymptomState,
+    load_thresholds,
 )
 from fdi_ros.core.symptoms import calibrate_thresholds as _calibrate
 from fdi_ros.core.types import FeatureVector, ResidualVector
@@ -248,15 +249,8 @@ DEFAULT_PENALTY = 0.1
 
 def load_symptom_config(directory) -> SymptomConfig | None:
     """The fault-free residual statistics saved next to a reference model set, if any."""
-    import json
-
     path = Path(directory) / THRESHOLDS_FILE
-    if not path.exists():
-        return None
-    try:
-        return SymptomConfig.from_dict(json.loads(path.read_text()))
-    except (json.JSONDecodeError, TypeError) as exc:
-        raise ValueError(f"{path}: malformed thresholds: {exc}") from exc
+    return load_thresholds(path) if path.exists() else None
 
 
 def block_rms(E: np.ndarray, block: int = 10) -> float:

@@ -335,6 +335,223 @@ def _verdict(findings: list[Finding], table: list[Candidate]) -> tuple[str, str]
     return "consistent", msg
 
 
+def _n_blocks(ctx: ChannelContext, cfg: DiscrepancyConfig, info: dict) -> int | None:
+    """Number of time blocks of a channel, or None (and ``info["status"]``) if too few
+    valid samples."""
+    n_ok = info["n_valid"]
+    tv = ctx.t[ctx.ok]
+    if tv.size < 2:
+        info["status"] = (f"too few valid samples ({n_ok}): measured or predicted values "
+                          "missing (outside the identified region?)")
+        return None
+    nb = cfg.n_blocks or int(np.clip(round((tv[-1] - tv[0]) / cfg.block_s), 24, 60))
+    info["n_blocks"] = nb
+    if n_ok < 20 * nb:
+        info["status"] = f"too few valid samples ({n_ok}) for {nb} blocks"
+        return None
+    return nb
+
+
+def _folds(ctx: ChannelContext, cfg: DiscrepancyConfig, blk: np.ndarray, nb: int,
+           ok: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Training and test masks of the interleaved block folds (a guard interval around each
+    held-out block is left out of training); the folds are also left on ``ctx`` for effects
+    that evaluate a parameter grid for all folds at once."""
+    tv = ctx.t[ok]
+    blen = (tv[-1] - tv[0]) / nb
+    guard = 0.25 * blen if cfg.guard_s is None else cfg.guard_s
+    bounds = [(ctx.t[blk == b].min(), ctx.t[blk == b].max()) if np.any(blk == b)
+              else (np.nan, np.nan) for b in range(nb)]
+    nf = min(cfg.n_folds or nb, nb)
+    trains, tests, cuts = [], [], []
+    for k in range(nf):
+        held = list(range(k, nb, nf))  # interleaved blocks: every fold spans the record
+        for b in held:
+            lo, hi = bounds[b]
+            i0 = int(np.searchsorted(ctx.t, lo - guard, side="left"))
+            i1 = int(np.searchsorted(ctx.t, hi + guard, side="right"))
+            cuts.append((i0, i1, k))
+        mask = np.zeros(ctx.n, dtype=bool)
+        for i0, i1, kk in cuts:
+            if kk == k:
+                mask[i0:i1] = True
+        trains.append(ok & ~mask)
+        tests.append(np.isin(blk, held))
+    # merge overlapping left-out intervals per fold (guards of neighbouring blocks)
+    merged: list[tuple[int, int, int]] = []
+    for k in range(nf):
+        iv = sorted((a, b) for a, b, kk in cuts if kk == k)
+        for a, b in iv:
+            if merged and merged[-1][2] == k and a <= merged[-1][1]:
+                merged[-1] = (merged[-1][0], max(b, merged[-1][1]), k)
+            else:
+                merged.append((a, b, k))
+    ctx.folds = (np.array([c[0] for c in merged]), np.array([c[1] for c in merged]),
+                 np.array([c[2] for c in merged]))
+    ctx.fold_ids = {id(tr): k for k, tr in enumerate(trains)}
+    return trains, tests
+
+
+@dataclass
+class _Channel:
+    """One channel under analysis: its context, folds and blocks."""
+
+    name: str
+    ctx: ChannelContext
+    blk: np.ndarray
+    nb: int
+    trains: list[np.ndarray]
+    tests: list[np.ndarray]
+    ok: np.ndarray  # valid samples (one array for the whole analysis of the channel)
+
+    def rmse(self, pred: np.ndarray) -> float:
+        return float(np.sqrt(np.nanmean((self.ctx.y - pred)[self.ok] ** 2)))
+
+    def block_mse(self, pred: np.ndarray) -> np.ndarray:
+        return _block_mse((self.ctx.y - pred) ** 2, self.blk, self.nb)
+
+
+def _held_out_chain(c: _Channel, chain: list[Effect]) -> tuple[list[np.ndarray], np.ndarray]:
+    """Per fold the chain's prediction, and the held-out prediction of every sample."""
+    bases = []
+    before = np.full(c.ctx.n, np.nan)
+    for tr, te in zip(c.trains, c.tests):
+        pred, _ = fit_chain(c.ctx, chain, tr)
+        bases.append(pred)
+        before[te] = pred[te]
+    return bases, before
+
+
+def _score(c: _Channel, eff: Effect, bases: list[np.ndarray], before: np.ndarray,
+           rmse_b: float, mse_b: np.ndarray) -> tuple[Candidate, np.ndarray] | None:
+    """Held-out score of one candidate effect on top of the chain (None: it cannot fit)."""
+    ctx = c.ctx
+    after = np.full(ctx.n, np.nan)
+    try:
+        for base, tr, te in zip(bases, c.trains, c.tests):
+            p = eff.fit(ctx, base, tr)
+            after[te] = eff.apply(ctx, base, p)[te]
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+        return None
+    # a candidate that cannot predict a sample leaves the model's value there
+    after = np.where(np.isfinite(after), after, before)
+    mse_a = c.block_mse(after)
+    rmse_a = c.rmse(after)
+    p = paired_p(mse_b, mse_a)
+    p_dm, _ = loss_differential_p(ctx.y - before, ctx.y - after)
+    return Candidate(effect=eff.id, label=eff.label, channel=c.name, n_params=eff.n_params,
+                     rmse_before=rmse_b, rmse_after=rmse_a,
+                     gain_pct=100.0 * (1.0 - rmse_a / rmse_b), p_value=p, p_adjusted=p,
+                     p_dm=p_dm, mse_blocks=mse_a), after
+
+
+def _alternatives(c: _Channel, chain: list[Effect], scored: list[tuple[Candidate, np.ndarray]],
+                  choice: Candidate, by_label: dict[str, Effect]) -> list[dict]:
+    """Other effects the held-out data cannot tell apart from the choice (within one standard
+    error), with their own parameters fitted on every valid sample."""
+    alternatives = []
+    full_pred = None
+    for cand, _ in scored:
+        if cand.effect == choice.effect:
+            continue
+        d = cand.mse_blocks - choice.mse_blocks
+        d = d[np.isfinite(d)]
+        if d.size >= 3 and d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size):
+            if full_pred is None:
+                full_pred, _ = fit_chain(c.ctx, chain, c.ok)
+            alt = by_label[cand.label]
+            alternatives.append({"effect": cand.effect, "label": cand.label,
+                                 "gain_pct": cand.gain_pct, "p_adjusted": cand.p_adjusted,
+                                 "params": alt.fit(c.ctx, full_pred, c.ok, refine=True)})
+    return alternatives
+
+
+def _grow_chain(c: _Channel, cfg: DiscrepancyConfig, n_channels: int, progress,
+                findings: list[Finding], table: list[Candidate],
+                oof: dict[str, np.ndarray]) -> tuple[list[Effect], int]:
+    """Add the significant effects of one channel, best first; returns the chain and the
+    number of steps taken."""
+    ctx = c.ctx
+    cands = candidates(ctx, effects=cfg.effects, onset=cfg.onset)
+    by_label = {e.label: e for e in cands}
+    chain: list[Effect] = []
+    nit = 0
+    for step in range(cfg.max_findings):
+        nit += 1
+        ctx.cache.clear()
+        bases, before = _held_out_chain(c, chain)
+        mse_b = c.block_mse(before)
+        rmse_b = c.rmse(before)
+        if step == 0:
+            oof["before"] = before
+        scored = [sc for eff in cands if not any(e.label == eff.label for e in chain)
+                  if (sc := _score(c, eff, bases, before, rmse_b, mse_b)) is not None]
+        if not scored:
+            break
+        m = len(scored) * n_channels
+        scored = [(Candidate(**{**cand.__dict__, "p_adjusted": min(1.0, cand.p_value * m)}), a)
+                  for cand, a in scored]
+        if step == 0:
+            table.extend(cand for cand, _ in scored)
+        eff, choice = _one_se_choice([(by_label[cand.label], cand) for cand, _ in scored],
+                                     cfg.alpha)
+        sig = choice.p_adjusted < cfg.alpha and choice.gain_pct >= cfg.min_gain_pct
+        if progress:
+            progress(f"{c.name} step {step + 1}: best {choice.label} gain "
+                     f"{choice.gain_pct:.1f}% p_adj {choice.p_adjusted:.2g}"
+                     f"{' (significant)' if sig else ''}")
+        if not sig:
+            break
+        alternatives = _alternatives(c, chain, scored, choice, by_label)
+        chain.append(eff)
+        oof[f"after_{step + 1}"] = next(a for cand, a in scored if cand is choice)
+        findings.append(Finding(rank=0, effect=choice.effect, label=choice.label,
+                                channel=c.name, params={}, rmse_before=choice.rmse_before,
+                                rmse_after=choice.rmse_after, gain_pct=choice.gain_pct,
+                                p_value=choice.p_value, p_adjusted=choice.p_adjusted,
+                                p_dm=choice.p_dm, significant=True,
+                                n_params=choice.n_params, step=step + 1,
+                                alternatives=alternatives))
+    return chain, nit
+
+
+def _refit(c: _Channel, chain: list[Effect], findings: list[Finding], info: dict
+           ) -> list[tuple[Effect, dict]]:
+    """The extension as saved: the chain refitted on every valid sample; the channel's
+    findings get these parameters."""
+    ctx = c.ctx
+    ctx.cache.clear()
+    _, params = fit_chain(ctx, chain, c.ok, refine=True)
+    ctx.cache.clear()
+    ctx.folds, ctx.fold_ids = None, {}
+    fitted = list(zip(chain, params))
+    for f_i, f in enumerate(findings):
+        if f.channel == c.name and not f.params:
+            findings[f_i] = Finding(**{**f.__dict__, "params": params[f.step - 1]})
+    final = apply_chain(ctx, fitted)
+    info["rmse_extended_in_sample"] = float(np.sqrt(np.mean((ctx.y - final)[c.ok] ** 2)))
+    return fitted
+
+
+def _conclude(findings: list[Finding], table: list[Candidate], summary: dict[str, dict]
+              ) -> tuple[list[Finding], str, str, bool]:
+    """Findings ranked, the verdict and its message, and whether any channel was analysed."""
+    findings.sort(key=lambda f: -f.gain_pct)
+    findings = [Finding(**{**f.__dict__, "rank": i + 1}) for i, f in enumerate(findings)]
+    table.sort(key=lambda c: -c.gain_pct)
+    verdict, msg = _verdict(findings, table)
+    skipped = {ch: c["status"] for ch, c in summary.items() if "status" in c}
+    success = len(skipped) < len(summary)
+    if not success:
+        # nothing was analysed (e.g. every sample outside the identified region): say so
+        verdict = "invalid"
+        msg = "no channel could be analysed: " + "; ".join(f"{k}: {v}" for k, v in
+                                                          skipped.items())
+    elif skipped:
+        msg += " (not analysed: " + "; ".join(f"{k}: {v}" for k, v in skipped.items()) + ")"
+    return findings, verdict, msg, success
+
+
 def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | None = None,
             progress=None) -> DiscrepancyResult:
     """Find, name, extend and score the model's discrepancies in measured data.
@@ -359,167 +576,29 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
     chains: dict[str, list[tuple[Effect, dict]]] = {}
     summary: dict[str, dict] = {}
     oof: dict[str, dict[str, np.ndarray]] = {}
-    n_channels = len(contexts)
     nit = 0
     for ch, ctx in contexts.items():
         ok = ctx.ok
         n_ok = int(ok.sum())
-        info = {"unit": ctx.unit, "n_samples": ctx.n, "n_valid": n_ok,
-                "n_masked": ctx.n - n_ok}
-        summary[ch] = info
+        info = summary[ch] = {"unit": ctx.unit, "n_samples": ctx.n, "n_valid": n_ok,
+                              "n_masked": ctx.n - n_ok}
         chains[ch] = []
-        tv = ctx.t[ok]
-        if tv.size < 2:
-            info["status"] = (f"too few valid samples ({n_ok}): measured or predicted values "
-                              "missing (outside the identified region?)")
-            continue
-        nb = cfg.n_blocks or int(np.clip(round((tv[-1] - tv[0]) / cfg.block_s), 24, 60))
-        info["n_blocks"] = nb
-        if n_ok < 20 * nb:
-            info["status"] = f"too few valid samples ({n_ok}) for {nb} blocks"
+        nb = _n_blocks(ctx, cfg, info)
+        if nb is None:
             continue
         blk = make_blocks(ctx.t, ok, nb)
-        blen = (tv[-1] - tv[0]) / nb
-        guard = 0.25 * blen if cfg.guard_s is None else cfg.guard_s
-        bounds = [(ctx.t[blk == b].min(), ctx.t[blk == b].max()) if np.any(blk == b)
-                  else (np.nan, np.nan) for b in range(nb)]
-        nf = min(cfg.n_folds or nb, nb)
-        trains, tests, cuts = [], [], []
-        for k in range(nf):
-            held = list(range(k, nb, nf))  # interleaved blocks: every fold spans the record
-            for b in held:
-                lo, hi = bounds[b]
-                i0 = int(np.searchsorted(ctx.t, lo - guard, side="left"))
-                i1 = int(np.searchsorted(ctx.t, hi + guard, side="right"))
-                cuts.append((i0, i1, k))
-            mask = np.zeros(ctx.n, dtype=bool)
-            for i0, i1, kk in cuts:
-                if kk == k:
-                    mask[i0:i1] = True
-            trains.append(ok & ~mask)
-            tests.append(np.isin(blk, held))
-        # merge overlapping left-out intervals per fold (guards of neighbouring blocks)
-        merged = []
-        for k in range(nf):
-            iv = sorted((a, b) for a, b, kk in cuts if kk == k)
-            for a, b in iv:
-                if merged and merged[-1][2] == k and a <= merged[-1][1]:
-                    merged[-1] = (merged[-1][0], max(b, merged[-1][1]), k)
-                else:
-                    merged.append((a, b, k))
-        cuts = merged
-        # the folds, for effects that evaluate a parameter grid for all folds at once
-        ctx.folds = (np.array([c[0] for c in cuts]), np.array([c[1] for c in cuts]),
-                     np.array([c[2] for c in cuts]))
-        ctx.fold_ids = {id(tr): k for k, tr in enumerate(trains)}
+        trains, tests = _folds(ctx, cfg, blk, nb, ok)
+        c = _Channel(ch, ctx, blk, nb, trains, tests, ok)
         resid0 = ctx.y - ctx.yhat
         info["rmse_baseline"] = float(np.sqrt(np.mean(resid0[ok] ** 2)))
         info["bias_baseline"] = float(np.mean(resid0[ok]))
-        cands = candidates(ctx, effects=cfg.effects, onset=cfg.onset)
-        chain: list[Effect] = []
-        for step in range(cfg.max_findings):
-            nit += 1
-            ctx.cache.clear()
-            bases = []
-            before = np.full(ctx.n, np.nan)
-            for tr, te in zip(trains, tests):
-                pred, _ = fit_chain(ctx, chain, tr)
-                bases.append(pred)
-                before[te] = pred[te]
-            mse_b = _block_mse((ctx.y - before) ** 2, blk, nb)
-            rmse_b = float(np.sqrt(np.nanmean((ctx.y - before)[ok] ** 2)))
-            if step == 0:
-                oof[ch] = {"before": before}
-            scored: list[tuple[Candidate, np.ndarray]] = []
-            for eff in cands:
-                if any(e.label == eff.label for e in chain):
-                    continue
-                after = np.full(ctx.n, np.nan)
-                try:
-                    for base, tr, te in zip(bases, trains, tests):
-                        p = eff.fit(ctx, base, tr)
-                        after[te] = eff.apply(ctx, base, p)[te]
-                except (np.linalg.LinAlgError, ValueError, FloatingPointError):
-                    continue
-                # a candidate that cannot predict a sample leaves the model's value there
-                after = np.where(np.isfinite(after), after, before)
-                mse_a = _block_mse((ctx.y - after) ** 2, blk, nb)
-                rmse_a = float(np.sqrt(np.nanmean((ctx.y - after)[ok] ** 2)))
-                p = paired_p(mse_b, mse_a)
-                p_dm, _ = loss_differential_p(ctx.y - before, ctx.y - after)
-                scored.append((Candidate(effect=eff.id, label=eff.label, channel=ch,
-                                         n_params=eff.n_params, rmse_before=rmse_b,
-                                         rmse_after=rmse_a,
-                                         gain_pct=100.0 * (1.0 - rmse_a / rmse_b),
-                                         p_value=p, p_adjusted=p,
-                                         p_dm=p_dm,
-                                         mse_blocks=mse_a), after))
-            if not scored:
-                break
-            m = len(scored) * n_channels
-            scored = [(Candidate(**{**c.__dict__, "p_adjusted": min(1.0, c.p_value * m)}), a)
-                      for c, a in scored]
-            if step == 0:
-                table.extend(c for c, _ in scored)
-            by_label = {e.label: e for e in cands}
-            eff, choice = _one_se_choice([(by_label[c.label], c) for c, _ in scored],
-                                         cfg.alpha)
-            sig = choice.p_adjusted < cfg.alpha and choice.gain_pct >= cfg.min_gain_pct
-            if progress:
-                progress(f"{ch} step {step + 1}: best {choice.label} gain "
-                         f"{choice.gain_pct:.1f}% p_adj {choice.p_adjusted:.2g}"
-                         f"{' (significant)' if sig else ''}")
-            if not sig:
-                break
-            # other effects the held-out data cannot tell apart from the choice (within one
-            # standard error): the report names them, with their own fitted parameters
-            alternatives = []
-            full_pred = None
-            for c, _ in scored:
-                if c.effect == choice.effect:
-                    continue
-                d = c.mse_blocks - choice.mse_blocks
-                d = d[np.isfinite(d)]
-                if d.size >= 3 and d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size):
-                    if full_pred is None:
-                        full_pred, _ = fit_chain(ctx, chain, ok)
-                    alt = by_label[c.label]
-                    alternatives.append({"effect": c.effect, "label": c.label,
-                                         "gain_pct": c.gain_pct, "p_adjusted": c.p_adjusted,
-                                         "params": alt.fit(ctx, full_pred, ok, refine=True)})
-            chain.append(eff)
-            oof[ch][f"after_{step + 1}"] = next(a for c, a in scored if c is choice)
-            findings.append(Finding(rank=0, effect=choice.effect, label=choice.label,
-                                    channel=ch, params={}, rmse_before=choice.rmse_before,
-                                    rmse_after=choice.rmse_after, gain_pct=choice.gain_pct,
-                                    p_value=choice.p_value, p_adjusted=choice.p_adjusted,
-                                    p_dm=choice.p_dm, significant=True,
-                                    n_params=choice.n_params, step=step + 1,
-                                    alternatives=alternatives))
-        # the extension as saved: refitted on every valid sample
-        ctx.cache.clear()
-        _, params = fit_chain(ctx, chain, ok, refine=True)
-        ctx.cache.clear()
-        ctx.folds, ctx.fold_ids = None, {}
-        chains[ch] = list(zip(chain, params))
-        for f_i, f in enumerate(findings):
-            if f.channel == ch and not f.params:
-                findings[f_i] = Finding(**{**f.__dict__, "params": params[f.step - 1]})
-        final = apply_chain(ctx, chains[ch])
-        info["rmse_extended_in_sample"] = float(np.sqrt(np.mean((ctx.y - final)[ok] ** 2)))
-    findings.sort(key=lambda f: -f.gain_pct)
-    findings = [Finding(**{**f.__dict__, "rank": i + 1}) for i, f in enumerate(findings)]
-    table.sort(key=lambda c: -c.gain_pct)
-    verdict, msg = _verdict(findings, table)
-    skipped = {ch: c["status"] for ch, c in summary.items() if "status" in c}
-    success = len(skipped) < len(summary)
-    if not success:
-        # nothing was analysed (e.g. every sample outside the identified region): say so
-        verdict = "invalid"
-        msg = "no channel could be analysed: " + "; ".join(f"{k}: {v}" for k, v in
-                                                          skipped.items())
-    elif skipped:
-        msg += " (not analysed: " + "; ".join(f"{k}: {v}" for k, v in skipped.items()) + ")"
+        oof[ch] = {}
+        chain, steps = _grow_chain(c, cfg, len(contexts), progress, findings, table, oof[ch])
+        if not oof[ch]:
+            del oof[ch]  # no step taken (max_findings = 0)
+        nit += steps
+        chains[ch] = _refit(c, chain, findings, info)
+    findings, verdict, msg, success = _conclude(findings, table, summary)
     return DiscrepancyResult(findings=findings, candidates=table, verdict=verdict, message=msg,
                              success=success, channels=summary, chains=chains,
                              n_blocks=max([c.get("n_blocks", 0) for c in summary.values()]

@@ -246,62 +246,78 @@ class Effect:
 
 
 @dataclass(frozen=True)
-class Offset(Effect):
+class _StepError(Effect):
+    """An additive or multiplicative error, constant, from an onset on, or piecewise constant
+    (``name``: label, ``key``: its parameter; subclasses say how it enters the model)."""
+
     onset: bool = False
     piecewise: bool = False
-    id = "offset"
+    name = ""
+    key = ""
 
     @property
     def label(self) -> str:
-        return _label("offset", self)
+        return _label(self.name, self)
 
     @property
     def n_params(self) -> int:
         return 4 if self.piecewise else 2 if self.onset else 1
 
+    def _regressor(self, base: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def _value(self, b: float) -> float:
+        """The parameter of a fitted coefficient ``b``."""
+        return b
+
+    def _with(self, base: np.ndarray, delta: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
     def fit(self, ctx, base, train, *, refine=False):
         m = _train_mask(ctx, base, train)
         if self.piecewise:
-            ch, vals = _fit_piecewise(ctx.y - base, np.ones_like(base), ctx.t, m, nonneg=False)
+            ch, vals = _fit_piecewise(ctx.y - base, self._regressor(base), ctx.t, m,
+                                      nonneg=False)
             k = int(np.argmax(np.abs(vals)))
-            return {"offset": vals[k], "changes_s": ch, "values": vals}
-        b, t_on = _fit_scalar(ctx.y - base, np.ones_like(base), ctx.t, m, onset=self.onset,
+            return {self.key: self._value(vals[k]), "changes_s": ch, "values": vals}
+        b, t_on = _fit_scalar(ctx.y - base, self._regressor(base), ctx.t, m, onset=self.onset,
                               nonneg=False)
-        return {"offset": b, "onset_s": t_on}
+        return {self.key: self._value(b), "onset_s": t_on}
 
     def apply(self, ctx, base, params):
         if "changes_s" in params:
-            return base + _piecewise_beta(ctx.t, params)
-        return base + params["offset"] * _step(ctx.t, params.get("onset_s"))
+            return self._with(base, _piecewise_beta(ctx.t, params))
+        return self._with(base, (params[self.key] - self._value(0.0))
+                          * _step(ctx.t, params.get("onset_s")))
 
 
 @dataclass(frozen=True)
-class GainError(Effect):
-    onset: bool = False
-    piecewise: bool = False
+class Offset(_StepError):
+    id = "offset"
+    name = "offset"
+    key = "offset"
+
+    def _regressor(self, base):
+        return np.ones_like(base)
+
+    def _with(self, base, delta):
+        return base + delta
+
+
+@dataclass(frozen=True)
+class GainError(_StepError):
     id = "gain_error"
+    name = "gain error"
+    key = "gain"
 
-    @property
-    def label(self) -> str:
-        return _label("gain error", self)
+    def _regressor(self, base):
+        return base
 
-    @property
-    def n_params(self) -> int:
-        return 4 if self.piecewise else 2 if self.onset else 1
+    def _value(self, b):
+        return 1.0 + b
 
-    def fit(self, ctx, base, train, *, refine=False):
-        m = _train_mask(ctx, base, train)
-        if self.piecewise:
-            ch, vals = _fit_piecewise(ctx.y - base, base, ctx.t, m, nonneg=False)
-            k = int(np.argmax(np.abs(vals)))
-            return {"gain": 1.0 + vals[k], "changes_s": ch, "values": vals}
-        b, t_on = _fit_scalar(ctx.y - base, base, ctx.t, m, onset=self.onset, nonneg=False)
-        return {"gain": 1.0 + b, "onset_s": t_on}
-
-    def apply(self, ctx, base, params):
-        if "changes_s" in params:
-            return base * (1.0 + _piecewise_beta(ctx.t, params))
-        return base * (1.0 + (params["gain"] - 1.0) * _step(ctx.t, params.get("onset_s")))
+    def _with(self, base, delta):
+        return base * (1.0 + delta)
 
 
 @dataclass(frozen=True)

@@ -6,9 +6,10 @@ publisher, on_cleanup destroys it.
 
 import sys
 
-import rclpy
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from std_msgs.msg import String
+
+from fdi_ros.nodes.common import run_node
 
 
 class Target(LifecycleNode):
@@ -35,17 +36,5 @@ class Target(LifecycleNode):
             self._pub.publish(String(data=f"tick {self._n}"))
 
 
-def main() -> None:
-    rclpy.init()
-    node = Target()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-
-
 if __name__ == "__main__":
-    main()
+    raise SystemExit(run_node(Target))

@@ -1,16 +1,14 @@
 """A child process that publishes one fully populated fdi_msgs message of each type, repeatedly
 (every 0.1 s) until stopped, so the receiving test can match fields one by one."""
 
-import rclpy
 from rclpy.node import Node
 from sample_messages import sample_records
 
 from fdi_ros.msgs import MessageFactory
-from fdi_ros.nodes.common import DATA_QOS
+from fdi_ros.nodes.common import DATA_QOS, run_node
 
 
-def main() -> None:
-    rclpy.init()
+def make_node() -> Node:
     node = Node("msg_publisher")
     fac = MessageFactory("rclpy")
     pubs = {}
@@ -18,14 +16,8 @@ def main() -> None:
     for topic, msg in samples.items():
         pubs[topic] = node.create_publisher(type(msg), topic, DATA_QOS)
     node.create_timer(0.1, lambda: [pubs[t].publish(m) for t, m in samples.items()])
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, rclpy.executors.ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    return node
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(run_node(make_node))

@@ -10,6 +10,7 @@ use (including time derivatives).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -18,6 +19,15 @@ from fdi_ros.core.discrepancy.engine import DiscrepancyResult
 from fdi_ros.core.discrepancy.model import ExtendedModel
 from fdi_ros.core.measured import Measured, segment_means
 
+
+def _save(fig: Any, out: Path, name: str, caption: str, figs: list[tuple[str, str]]) -> None:
+    """Lay out, write and close one report figure; list it with its caption."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    fig.savefig(out / name, dpi=90)
+    plt.close(fig)
+    figs.append((name, caption))
 
 def _fmt_params(p: dict) -> str:
     out = []
@@ -116,11 +126,8 @@ def write_report(out_dir: str | Path, data: Measured, baseline, extended: Extend
         ax[0].set_title(f"{ch}: measured vs model" + (" (180 deg CA segment means)"
                                                      if view.alpha is None and "segment" in
                                                      view.source else ""))
-        fig.tight_layout()
-        name = f"residual_time_{ch}.png"
-        fig.savefig(out / name, dpi=90)
-        plt.close(fig)
-        figs.append((name, "Measured channel, baseline and extended model; residual over time"))
+        _save(fig, out, f"residual_time_{ch}.png",
+              "Measured channel, baseline and extended model; residual over time", figs)
         # 2. error map over the operating region
         if len(ctx.region) >= 2:
             names, edges, mean, cnt = error_map(ctx.region, r0)
@@ -145,11 +152,8 @@ def write_report(out_dir: str | Path, data: Measured, baseline, extended: Extend
             ax.set_xlabel(f"{names[0]} [{data.units.get(names[0], '')}]")
             ax.set_ylabel(f"{names[1]} [{data.units.get(names[1], '')}]")
             ax.set_title(f"Error map of {ch} (baseline): mean residual per bin (>= 10 samples)")
-            fig.tight_layout()
-            name = f"error_map_{ch}.png"
-            fig.savefig(out / name, dpi=90)
-            plt.close(fig)
-            figs.append((name, "Where in the operating region the baseline is wrong"))
+            _save(fig, out, f"error_map_{ch}.png",
+                  "Where in the operating region the baseline is wrong", figs)
         # 3. correlation with unused signals
         cols = dict(ctx.columns)
         if cols:
@@ -167,11 +171,8 @@ def write_report(out_dir: str | Path, data: Measured, baseline, extended: Extend
             ax.axvline(0, color="k", lw=0.5)
             ax.set_xlabel("correlation with the baseline residual")
             ax.set_title(f"{ch}: residual vs measured signals the model does not use")
-            fig.tight_layout()
-            name = f"correlation_{ch}.png"
-            fig.savefig(out / name, dpi=90)
-            plt.close(fig)
-            figs.append((name, "Candidate explanations: correlation of the residual"))
+            _save(fig, out, f"correlation_{ch}.png",
+                  "Candidate explanations: correlation of the residual", figs)
     # 4. spectrum: by crank-angle order, or by frequency
     if crank:
         cctx = build_contexts(data, baseline)
@@ -188,10 +189,7 @@ def write_report(out_dir: str | Path, data: Measured, baseline, extended: Extend
         ax.set_ylabel("amplitude")
         ax.set_title("Residual spectrum by crank-angle order")
         ax.legend(fontsize=8)
-        fig.tight_layout()
-        fig.savefig(out / "order_spectrum.png", dpi=90)
-        plt.close(fig)
-        figs.append(("order_spectrum.png", "Residual spectrum by crank-angle order"))
+        _save(fig, out, "order_spectrum.png", "Residual spectrum by crank-angle order", figs)
     else:
         from scipy.signal import welch
 
@@ -206,10 +204,7 @@ def write_report(out_dir: str | Path, data: Measured, baseline, extended: Extend
         ax.set_ylabel("residual PSD")
         ax.set_title("Residual spectrum (no crank-angle data: by frequency)")
         ax.legend(fontsize=8)
-        fig.tight_layout()
-        fig.savefig(out / "residual_spectrum.png", dpi=90)
-        plt.close(fig)
-        figs.append(("residual_spectrum.png", "Residual spectrum by frequency"))
+        _save(fig, out, "residual_spectrum.png", "Residual spectrum by frequency", figs)
     # 5. candidate ranking
     cands = result.candidates[:15]
     if cands:
@@ -223,10 +218,7 @@ def write_report(out_dir: str | Path, data: Measured, baseline, extended: Extend
         ax.invert_yaxis()
         ax.set_xlabel("held-out RMSE gain [%] (green: significant)")
         ax.set_title("Every candidate extension, first step, held-out blocks")
-        fig.tight_layout()
-        fig.savefig(out / "candidates.png", dpi=90)
-        plt.close(fig)
-        figs.append(("candidates.png", "Held-out gain of every candidate extension"))
+        _save(fig, out, "candidates.png", "Held-out gain of every candidate extension", figs)
     # Markdown
     lines = [f"# {title}", "", f"Data: `{data.source}` ({data.n_samples} samples, "
              f"{data.t[-1] - data.t[0]:.1f} s). Verdict: **{result.verdict}**: {result.message}.",

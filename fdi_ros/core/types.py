@@ -98,7 +98,8 @@ class FaultEvent:
     """A fault injection or ground-truth event (mirrors ``fdi_msgs/FaultEvent``).
 
     ``fault`` is a plant fault id ("" clears all faults); ``size`` is in ``size_unit``
-    (e.g. 5.0 "mm" for a leak diameter); ``profile`` is "step" or "ramp".
+    (e.g. 5.0 "mm" for a leak diameter); ``profile`` is "step" or "ramp" (see
+    :meth:`size_at`).
     """
 
     t: float
@@ -114,6 +115,19 @@ class FaultEvent:
             raise ValueError(f"profile must be 'step' or 'ramp', not {self.profile!r}")
         if self.profile == "ramp" and not self.ramp_s > 0:
             raise ValueError("a ramp needs ramp_s > 0")
+
+    def size_at(self, t: float, before: float = 0.0) -> float:
+        """The one meaning of the profiles: the fault's size at time ``t`` >= ``self.t``, given
+        its size ``before`` the event. "step": the event's size at once; "ramp": linear from
+        ``before`` to the event's size over ``ramp_s``."""
+        if self.profile != "ramp":
+            return self.size
+        return before + ramp_fraction(t, self.t, self.ramp_s) * (self.size - before)
+
+
+def ramp_fraction(t: float, t_event: float, ramp_s: float) -> float:
+    """How far a ramp that started at ``t_event`` has come at ``t`` (1 at once if ramp_s <= 0)."""
+    return 1.0 if ramp_s <= 0 else min((t - t_event) / ramp_s, 1.0)
 
 
 @dataclass(frozen=True)

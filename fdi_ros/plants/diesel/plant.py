@@ -347,10 +347,7 @@ class _FaultSchedule:
             if not ev.active:
                 out[ev.fault] = 0.0
                 continue
-            size = ev.size
-            if ev.profile == "ramp":
-                size *= min(1.0, (t - ev.t) / ev.ramp_s)
-            out[ev.fault] = size
+            out[ev.fault] = ev.size_at(t, out[ev.fault])
         return out
 
 

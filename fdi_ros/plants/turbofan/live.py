@@ -19,7 +19,7 @@ import numpy as np
 
 from fdi_ros.core.plant_api import FaultQueue
 from fdi_ros.core.supervisor import fault_type
-from fdi_ros.core.types import FaultEvent, FeatureVector, SampleBlock
+from fdi_ros.core.types import FaultEvent, FeatureVector, SampleBlock, ramp_fraction
 from fdi_ros.plants import ROOT
 from fdi_ros.plants.turbofan import plant as tfp
 
@@ -100,8 +100,7 @@ class TurbofanRunner:
                 sizes = {}
                 continue
             before = sizes.get(kind, 0.0)
-            frac = 1.0 if ramp <= 0 else min((t - te) / ramp, 1.0)
-            sizes[kind] = before + frac * (units - before)
+            sizes[kind] = before + ramp_fraction(t, te, ramp) * (units - before)
         p = self._base.copy()
         for kind, units in sizes.items():
             p = p + units * tfp.fault_vector(kind)

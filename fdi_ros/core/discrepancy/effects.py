@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize_scalar
@@ -273,7 +274,8 @@ class _StepError(Effect):
     def _with(self, base: np.ndarray, delta: np.ndarray) -> np.ndarray:
         raise NotImplementedError
 
-    def fit(self, ctx, base, train, *, refine=False):
+    def fit(self, ctx: ChannelContext, base: np.ndarray, train: np.ndarray, *,
+            refine: bool = False) -> dict[str, Any]:
         m = _train_mask(ctx, base, train)
         if self.piecewise:
             ch, vals = _fit_piecewise(ctx.y - base, self._regressor(base), ctx.t, m,
@@ -284,7 +286,8 @@ class _StepError(Effect):
                               nonneg=False)
         return {self.key: self._value(b), "onset_s": t_on}
 
-    def apply(self, ctx, base, params):
+    def apply(self, ctx: ChannelContext, base: np.ndarray, params: dict[str, Any]
+              ) -> np.ndarray:
         if "changes_s" in params:
             return self._with(base, _piecewise_beta(ctx.t, params))
         return self._with(base, (params[self.key] - self._value(0.0))
@@ -297,10 +300,10 @@ class Offset(_StepError):
     name = "offset"
     key = "offset"
 
-    def _regressor(self, base):
+    def _regressor(self, base: np.ndarray) -> np.ndarray:
         return np.ones_like(base)
 
-    def _with(self, base, delta):
+    def _with(self, base: np.ndarray, delta: np.ndarray) -> np.ndarray:
         return base + delta
 
 
@@ -310,13 +313,13 @@ class GainError(_StepError):
     name = "gain error"
     key = "gain"
 
-    def _regressor(self, base):
+    def _regressor(self, base: np.ndarray) -> np.ndarray:
         return base
 
-    def _value(self, b):
+    def _value(self, b: float) -> float:
         return 1.0 + b
 
-    def _with(self, base, delta):
+    def _with(self, base: np.ndarray, delta: np.ndarray) -> np.ndarray:
         return base * (1.0 + delta)
 
 

@@ -32,7 +32,9 @@ Procedure for each channel (greedy forward selection, at most ``max_findings`` s
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -335,7 +337,7 @@ def _verdict(findings: list[Finding], table: list[Candidate]) -> tuple[str, str]
     return "consistent", msg
 
 
-def _n_blocks(ctx: ChannelContext, cfg: DiscrepancyConfig, info: dict) -> int | None:
+def _n_blocks(ctx: ChannelContext, cfg: DiscrepancyConfig, info: dict[str, Any]) -> int | None:
     """Number of time blocks of a channel, or None (and ``info["status"]``) if too few
     valid samples."""
     n_ok = info["n_valid"]
@@ -429,8 +431,8 @@ def _score(c: _Channel, eff: Effect, bases: list[np.ndarray], before: np.ndarray
     after = np.full(ctx.n, np.nan)
     try:
         for base, tr, te in zip(bases, c.trains, c.tests):
-            p = eff.fit(ctx, base, tr)
-            after[te] = eff.apply(ctx, base, p)[te]
+            params = eff.fit(ctx, base, tr)
+            after[te] = eff.apply(ctx, base, params)[te]
     except (np.linalg.LinAlgError, ValueError, FloatingPointError):
         return None
     # a candidate that cannot predict a sample leaves the model's value there
@@ -446,7 +448,7 @@ def _score(c: _Channel, eff: Effect, bases: list[np.ndarray], before: np.ndarray
 
 
 def _alternatives(c: _Channel, chain: list[Effect], scored: list[tuple[Candidate, np.ndarray]],
-                  choice: Candidate, by_label: dict[str, Effect]) -> list[dict]:
+                  choice: Candidate, by_label: dict[str, Effect]) -> list[dict[str, Any]]:
     """Other effects the held-out data cannot tell apart from the choice (within one standard
     error), with their own parameters fitted on every valid sample."""
     alternatives = []
@@ -466,7 +468,8 @@ def _alternatives(c: _Channel, chain: list[Effect], scored: list[tuple[Candidate
     return alternatives
 
 
-def _grow_chain(c: _Channel, cfg: DiscrepancyConfig, n_channels: int, progress,
+def _grow_chain(c: _Channel, cfg: DiscrepancyConfig, n_channels: int,
+                progress: Callable[[str], None] | None,
                 findings: list[Finding], table: list[Candidate],
                 oof: dict[str, np.ndarray]) -> tuple[list[Effect], int]:
     """Add the significant effects of one channel, best first; returns the chain and the
@@ -515,8 +518,8 @@ def _grow_chain(c: _Channel, cfg: DiscrepancyConfig, n_channels: int, progress,
     return chain, nit
 
 
-def _refit(c: _Channel, chain: list[Effect], findings: list[Finding], info: dict
-           ) -> list[tuple[Effect, dict]]:
+def _refit(c: _Channel, chain: list[Effect], findings: list[Finding], info: dict[str, Any]
+           ) -> list[tuple[Effect, dict[str, Any]]]:
     """The extension as saved: the chain refitted on every valid sample; the channel's
     findings get these parameters."""
     ctx = c.ctx
@@ -533,8 +536,8 @@ def _refit(c: _Channel, chain: list[Effect], findings: list[Finding], info: dict
     return fitted
 
 
-def _conclude(findings: list[Finding], table: list[Candidate], summary: dict[str, dict]
-              ) -> tuple[list[Finding], str, str, bool]:
+def _conclude(findings: list[Finding], table: list[Candidate],
+              summary: dict[str, dict[str, Any]]) -> tuple[list[Finding], str, str, bool]:
     """Findings ranked, the verdict and its message, and whether any channel was analysed."""
     findings.sort(key=lambda f: -f.gain_pct)
     findings = [Finding(**{**f.__dict__, "rank": i + 1}) for i, f in enumerate(findings)]
@@ -553,7 +556,7 @@ def _conclude(findings: list[Finding], table: list[Candidate], summary: dict[str
 
 
 def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | None = None,
-            progress=None) -> DiscrepancyResult:
+            progress: Callable[[str], None] | None = None) -> DiscrepancyResult:
     """Find, name, extend and score the model's discrepancies in measured data.
 
     Parameters
@@ -573,8 +576,8 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
     t0 = time.perf_counter()
     findings: list[Finding] = []
     table: list[Candidate] = []
-    chains: dict[str, list[tuple[Effect, dict]]] = {}
-    summary: dict[str, dict] = {}
+    chains: dict[str, list[tuple[Effect, dict[str, Any]]]] = {}
+    summary: dict[str, dict[str, Any]] = {}
     oof: dict[str, dict[str, np.ndarray]] = {}
     nit = 0
     for ch, ctx in contexts.items():

@@ -47,8 +47,9 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from fdi_ros.core.crank import CrankSegmenter, crank_harmonics
+    from fdi_ros.core.crank import crank_harmonics
     from fdi_ros.core.types import SampleBlock
+    from fdi_ros.plants.diesel.wing import DieselPreprocessor
 
     if not args.seconds > 0 or args.repeat < 1:
         raise ValueError("--seconds must be > 0 and --repeat >= 1")
@@ -89,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     vals = np.vstack([np.full(N, n_rpm), p2, np.full(N, 330.0), maf])[:, :n_stream]
 
     def stream():
-        seg = CrankSegmenter()
+        seg = DieselPreprocessor().seg  # the engine's displacement and gas constant
         count = 0
         for i in range(0, n_stream, 720):
             b = SampleBlock(plant="diesel", index=i // 720, t=t[i:i + 720],

@@ -1,0 +1,132 @@
+"""Step aligner, staleness, /diagnostics entries and the fault memory, without ROS."""
+
+from __future__ import annotations
+
+import math
+import random
+import time
+
+import pytest
+
+from fdi_ros.core.faultmemory import FaultMemory, FaultStore
+from fdi_ros.core.supervision import (
+    STALE,
+    WARN,
+    Staleness,
+    StepAligner,
+    pipeline_entry,
+)
+
+
+def test_aligner_waits_for_every_live_model_in_plant_time():
+    al = StepAligner(lag_s=0.1)
+    al.add_features(0, 0.015)
+    al.add_residual("nominal", 0, "r0")
+    assert al.ready({"nominal", "a"}) == []  # a missing, features not ahead yet
+    al.add_residual("a", 0, "a0")
+    (s,) = al.ready({"nominal", "a"})
+    assert s.complete and s.index == 0 and set(s.residuals) == {"nominal", "a"}
+    assert not al.add_residual("a", 0, "late") and al.late == 1
+
+
+def test_aligner_skips_incomplete_steps_when_features_run_ahead_and_counts_gaps():
+    al = StepAligner(lag_s=0.05)
+    for k in range(10):
+        al.add_features(k, 0.015 * (k + 1))
+        al.add_residual("nominal", k, k)
+    al.add_features(12, 0.015 * 13)  # 10 and 11 dropped
+    steps = al.ready({"nominal", "a"})
+    assert [s.complete for s in steps] == [False] * len(steps) and steps
+    assert al.skipped == len(steps) and al.dropped == 2
+    assert pipeline_entry(al, warn_lag_s=1.0).level == WARN
+
+
+def test_aligner_random_arrival_orders_give_the_same_steps():
+    """Residuals arriving in any order (bounded lag) give the same complete steps."""
+    seed = int(time.time_ns() % 2**31)
+    print(f"seed {seed}")
+    rng = random.Random(seed)
+    events = [("f", k) for k in range(50)] + [(m, k) for k in range(50) for m in "nab"]
+    for _ in range(20):
+        order = sorted(events, key=lambda e: e[1] + (0 if e[0] == "f" else rng.random() * 3))
+        al, taken = StepAligner(lag_s=10.0), []
+        for kind, k in order:
+            if kind == "f":
+                al.add_features(k, k * 0.015)
+            else:
+                al.add_residual(kind, k, (kind, k))
+            taken += al.ready({"n", "a", "b"})
+        assert [s.index for s in taken] == list(range(50)), seed
+        assert all(s.complete for s in taken) and al.late == 0
+
+
+def test_staleness_in_plant_and_wall_time():
+    st = Staleness(stale_s=0.5, wall_timeout_s=2.0)
+    st.seen("sensor_block", 1.0, wall=10.0)
+    st.seen("features", 1.0, wall=10.0)
+    assert st.stale(10.1) == {}
+    st.seen("sensor_block", 1.6, wall=10.6)  # features stopped, blocks go on
+    assert list(st.stale(10.6)) == ["features"]
+    assert "stale" in st.stale(10.6)["features"]
+    assert set(st.stale(13.0)) == {"sensor_block", "features"}  # everything silent
+    st.seen("features", 1.6, wall=13.1)
+    st.seen("sensor_block", 1.6, wall=13.1)
+    assert st.stale(13.2) == {}
+
+
+def test_fault_memory_debounce_confirm_heal_clear():
+    fm = FaultMemory(confirm_s=0.1, heal_s=1.0)
+    t = 0.0
+    for _ in range(5):  # isolated for 0.06 s only: dropped before confirmation, no trace
+        t += 0.015
+        fm.update(t, "isolated", ["leak"])
+    fm.update(t + 0.015, "no_fault", [])
+    assert fm.records == {}
+    for _ in range(10):
+        t += 0.015
+        fm.update(t, "isolated", ["leak"], {"features": {"n": 2000.0}})
+    r = fm.records["leak"]
+    assert r.status == "CONFIRMED" and r.occurrences == 1
+    assert r.freeze_frame["features"] == {"n": 2000.0}
+    first = r.first_t_s
+    for _ in range(100):  # not a passed test: no healing while only detected
+        t += 0.015
+        fm.update(t, "detected", [])
+    assert r.status == "CONFIRMED"
+    for _ in range(80):
+        t += 0.015
+        fm.update(t, "no_fault", [])
+    assert r.status == "HEALED" and r.first_t_s == first
+    for _ in range(10):
+        t += 0.015
+        fm.update(t, "isolated", ["leak"])
+    assert r.status == "CONFIRMED" and r.occurrences == 2
+    fm.clear()
+    assert r.status == "CLEARED"
+    with pytest.raises(KeyError):
+        fm.clear(["nope"])
+    with pytest.raises(ValueError):
+        FaultMemory(confirm_s=math.nan)
+
+
+def test_fault_store_survives_reopen_and_rejects_garbage(tmp_path):
+    fm = FaultMemory(confirm_s=0.0)
+    fm.update(6.4, "isolated", ["leak"], {"residuals": [1.0, math.nan]})
+    store = FaultStore(tmp_path / "s" / "faults.sqlite")
+    store.save(fm.records.values())
+    store.close()
+    again = FaultStore(tmp_path / "s" / "faults.sqlite").load(FaultMemory())
+    r = again.records["leak"]
+    assert (r.status, r.occurrences, r.first_t_s) == ("CONFIRMED", 1, 6.4)
+    assert r.freeze_frame["residuals"] == [1.0, None]
+    bad = tmp_path / "bad.sqlite"
+    bad.write_text("not a database at all" * 100)
+    with pytest.raises(ValueError, match="fault memory"):
+        FaultStore(bad)
+
+
+def test_stale_entry_level():
+    from fdi_ros.core.supervision import diagnosis_entry
+
+    e = diagnosis_entry(None, "diesel", {"features": "stale: no features for 3.0 s"}, False)
+    assert e.level == STALE and "stale" in e.message and "features" in e.message

@@ -25,7 +25,8 @@ import numpy as np
 from fdi_ros.core.types import Diagnosis, FaultEvent, FeatureVector, ResidualVector, SampleBlock
 
 PACKAGE = "fdi_msgs"
-MESSAGES = ("SensorBlock", "Features", "Residuals", "Symptoms", "Diagnosis", "FaultEvent")
+MESSAGES = ("SensorBlock", "Features", "Residuals", "Symptoms", "Diagnosis", "FaultEvent",
+            "FaultRecord")
 
 # Topic -> message type of the graph. One table, used by nodes, recorder, replayer and bag tools.
 TOPICS: dict[str, str] = {

@@ -238,3 +238,31 @@ def symptoms_dict(m: Any) -> dict:
     return {"index": int(m.index), "t": float(m.t_s), "valid": bool(m.valid),
             "status": m.status, "levels": dict(zip(m.names, (int(v) for v in m.levels))),
             "residuals": dict(zip(m.names, (float(v) for v in m.residuals)))}
+
+
+def fault_records(records: Any) -> list:
+    """Core fault-memory records -> fdi_msgs/FaultRecord (rclpy) messages."""
+    import json
+
+    from fdi_msgs.msg import FaultRecord
+
+    from fdi_ros.core.faultmemory import record_dict
+
+    return [FaultRecord(fault=r.fault, status=r.status, occurrences=r.occurrences,
+                        first_t_s=r.first_t_s, last_t_s=r.last_t_s,
+                        freeze_frame_json=json.dumps(record_dict(r)["freeze_frame"]))
+            for r in records]
+
+
+def diagnostic_array(entries: Any, t_s: float) -> Any:
+    """Core /diagnostics entries -> diagnostic_msgs/DiagnosticArray (rclpy), stamped in plant
+    time ``t_s``."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    arr = DiagnosticArray()
+    arr.header.stamp.sec, arr.header.stamp.nanosec = stamp_fields(max(t_s, 0.0))
+    arr.status = [DiagnosticStatus(level=bytes([e.level]), name=e.name, message=e.message,
+                                   hardware_id=e.hardware_id,
+                                   values=[KeyValue(key=k, value=v) for k, v in e.values])
+                  for e in entries]
+    return arr

@@ -142,10 +142,10 @@ def test_frozen_model_reported_silent_then_back(live):
         for st in arr.status:
             if st.name == f"fdi_supervisor: model {FROZEN}":
                 msgs.append(st.message)
-    silent = [i for i, m in enumerate(msgs) if m.startswith("silent")]
+    silent = [i for i, m in enumerate(msgs) if m.startswith("stale")]
     assert silent, f"never reported silent: {sorted(set(msgs))}"
     # after SIGCONT it answers again and is reported healthy (it goes off line at isolation)
-    assert any(not m.startswith("silent") for m in msgs[silent[-1] + 1:]), msgs[-5:]
+    assert any(not m.startswith("stale") for m in msgs[silent[-1] + 1:]), msgs[-5:]
     assert run.isolated_faults == ("leak_ic_engine",), lines
 
 

@@ -19,9 +19,33 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from fdi_ros.core.bankdriver import BankDriver, label
+from fdi_ros.core.bankdriver import BankDriver, Note, label
 
-OK, WARN, ERROR, STALE = 0, 1, 2, 3  # diagnostic_msgs/DiagnosticStatus levels
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+# The supervisor's parameters: name: (default, description, read_only, (min, max) or None)
+PARAMS = {  # name: (default, description, read_only, (min, max) or None)
+    "graph_config": ("", "path of config/<plant>.yaml (required)", True, None),
+    "lag_s": (2.0, "plant s the features may run ahead before a step is skipped", False,
+              (0.01, 60.0)),
+    "stale_s": (0.5, "plant s an input may lag the newest stamp before it is stale", True,
+                (0.01, 60.0)),
+    "stale_wall_s": (2.0, "wall s without an input before it is reported stale", True,
+                     (0.1, 600.0)),
+    "model_wall_s": (1.0, "wall s of features without a model's residuals: stale", True,
+                     (0.1, 600.0)),
+    "t0_s": (math.nan, "isolation hold time T0 [plant s] (default: the graph config)", False,
+             None),
+    "reconcile": ("reconcile", "external lifecycle changes: 'reconcile' or 'respect'", False,
+                  None),
+    "reconcile_after_s": (2.0, "wall s before an external change is undone", False,
+                          (0.0, 600.0)),
+    "confirm_s": (0.1, "plant s a fault stays isolated before CONFIRMED", True, (0.0, 60.0)),
+    "heal_s": (5.0, "plant s of passed diagnosis before a fault is HEALED", True, (0.0, 1e6)),
+    "state_dir": ("", "graph state directory (default $FDI_ROS_STATE_DIR or out/state)", True,
+                  None),
+    "diagnostics_period_s": (1.0, "period of /diagnostics [wall s]", True, (0.05, 60.0)),
+}
+  # diagnostic_msgs/DiagnosticStatus levels
 
 
 @dataclass
@@ -245,3 +269,186 @@ def model_entries(drv: BankDriver, stale: Mapping[str, str]) -> list[Entry]:
             level, msg = OK, f"{label(v.observed)} (wanted {label(v.desired)})"
         out.append(Entry(level, f"fdi_supervisor: model {v.model_id}", msg, v.node, vals))
     return out
+
+
+@dataclass(frozen=True)
+class Publish:
+    """Action: publish ``what`` ("symptoms": (index, t, SymptomState); "diagnosis": Diagnosis;
+    "confirmed": FaultRecord, for a snapshot)."""
+
+    what: str
+    value: Any
+
+
+class SupervisorCore:
+    """Everything the supervisor node decides, fed with plain events (no rclpy).
+
+    Diagnosis (plant time from stamps): :class:`StepAligner` -> ``Diagnoser`` -> fault memory.
+    Health (wall time): :class:`BankDriver`, :class:`Staleness`. The node converts messages
+    into calls of ``features``, ``residual``, ``block``, ``transition``, ``tick`` and executes
+    the actions returned (service calls, publications, log lines).
+    """
+
+    def __init__(self, cfg: Any, *, policy: Any = None, lag_s: float = 2.0,
+                 stale_s: float = 0.5, stale_wall_s: float = 2.0, model_wall_s: float = 1.0,
+                 confirm_s: float = 0.1, heal_s: float = 5.0, store: Any = None) -> None:
+        from fdi_ros.core.diagnoser import Diagnoser
+        from fdi_ros.core.faultmemory import FaultMemory
+
+        self.cfg = cfg
+        self.diag = Diagnoser(cfg)
+        self.driver = BankDriver([(e.id, e.node_name) for e in cfg.bank], policy)
+        self.driver.set_desired(self.diag.models_online)
+        self.aligner = StepAligner(lag_s=lag_s)
+        self.inputs = Staleness(stale_s=stale_s, wall_timeout_s=stale_wall_s)
+        self.models = Staleness(stale_s=math.inf, wall_timeout_s=model_wall_s)
+        self.memory = FaultMemory(confirm_s=confirm_s, heal_s=heal_s)
+        self.store = store
+        if store is not None:
+            store.load(self.memory)
+        self.last: Any = None
+        self._features: dict[int, dict] = {}
+        self._symptoms: dict[int, Any] = {}
+        self._stale: dict[str, str] = {}
+
+    # -- data (plant time) --------------------------------------------------------------------
+    def block(self, t: float, wall: float) -> None:
+        self.inputs.seen("sensor_block", t, wall)
+
+    def features(self, index: int, t: float, wall: float, values: dict | None = None) -> list:
+        self.inputs.seen("features", t, wall)
+        self.aligner.add_features(index, t)
+        if values is not None:
+            self._features[index] = values
+        return self._steps()
+
+    def residual(self, rv: Any, wall: float) -> list:
+        if rv.model_id not in self.driver.nodes:
+            return []
+        self.models.seen(f"residuals {rv.model_id}", rv.t, wall)
+        if not self.driver.live(rv.model_id) or rv.model_id not in self.diag.models_online:
+            return []  # a model away from its desired state: its residuals are not valid
+        if not self.aligner.add_residual(rv.model_id, rv.index, rv):
+            return []
+        out = []
+        if rv.model_id == self.diag.reference_id and rv.index not in self._symptoms:
+            s = self.diag.symptoms_of(rv)  # at once: the symptom need not wait for the bank
+            self._symptoms[rv.index] = s
+            out.append(Publish("symptoms", (rv.index, rv.t, s)))
+        return out + self._steps()
+
+    def _expected(self) -> list[str]:
+        return [m for m in self.diag.models_online if self.driver.live(m)
+                and f"residuals {m}" not in self._stale]
+
+    def _steps(self) -> list:
+        from dataclasses import replace
+
+        out: list = []
+        for st in self.aligner.ready(self._expected()):
+            sym = self._symptoms.pop(st.index, None)
+            skip = not st.complete or any(k.startswith("residuals ") and
+                                          self.driver.live(k[10:]) for k in self._stale)
+            step = self.diag.update(st.index, st.t, {} if skip else st.residuals,
+                                    symptoms=None if skip else sym)
+            d = step.diagnosis
+            if skip:
+                d = replace(d, state="not_valid" if not d.isolated_faults else d.state,
+                            extra={**d.extra, "skipped": True})
+            if sym is None and step.symptoms is not None and not skip:
+                out.append(Publish("symptoms", (st.index, st.t, step.symptoms)))
+            out.append(Publish("diagnosis", d))
+            if d.state != (self.last.state if self.last is not None else ""):
+                out.append(Note("info", "", f"t = {st.t:.3f} s segment {st.index}: {d.state}; "
+                                f"I* = {d.min_residual_model or '-'}, candidates "
+                                f"{list(d.candidate_faults)}, isolated {list(d.isolated_faults)}"))
+            self.last = d
+            if step.switched:
+                self.driver.set_desired(self.diag.models_online)
+                out.append(Note("info", "", f"bank switch at t = {st.t:.3f} s: off line "
+                                f"{list(step.removed)}, on line {list(step.added)}"))
+            out += self._remember(d, st, step.symptoms)
+            for old in [i for i in self._features if i <= st.index]:
+                del self._features[old]
+        return out
+
+    def _remember(self, d: Any, st: Step, sym: Any) -> list:
+        frame = {"features": self._features.get(st.index, {}),
+                 "residuals": {m: {"norm": float(r.norm), "values": list(map(float, r.values))}
+                               for m, r in st.residuals.items()},
+                 "symptoms": dict(zip(sym.names, sym.levels)) if sym is not None else {}}
+        changed = self.memory.update(d.t, d.state, d.isolated_faults, frame)
+        if self.store is not None and changed:
+            self.store.save(changed)
+        return [Publish("confirmed", r) for r in changed if r.status == "CONFIRMED"] + [
+            Note("info", "", f"fault memory: {r.fault} {r.status}") for r in changed]
+
+    def set(self, name: str, value: Any) -> None:
+        """A live parameter change, validated (ValueError if it cannot apply)."""
+        from dataclasses import replace
+
+        if name == "t0_s" and not math.isnan(value):
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"t0_s must be a finite time >= 0 s, not {value}")
+            self.diag.supervisor.t0_s = float(value)
+        elif name == "lag_s":
+            if not value > 0:
+                raise ValueError(f"lag_s must be > 0, not {value}")
+            self.aligner.lag_s = float(value)
+        elif name in ("reconcile", "reconcile_after_s"):
+            key = "policy" if name == "reconcile" else name
+            self.driver.policy = replace(self.driver.policy, **{key: value})
+
+    def clear(self, faults: list[str]) -> list:
+        """Clear faults of the memory; clearing all restarts the diagnosis (initial bank)."""
+        cleared = self.memory.clear(faults)
+        if self.store is not None:
+            self.store.save(cleared)
+        if not faults:
+            from fdi_ros.core.diagnoser import Diagnoser
+
+            self.diag = Diagnoser(self.cfg)
+            self.driver.set_desired(self.diag.models_online)
+        return cleared
+
+    # -- health (wall time) -------------------------------------------------------------------
+    def tick(self, now: float, ready: dict[str, bool], present: set[str] | None) -> list:
+        out: list = []
+        for mid, v in self.driver.nodes.items():
+            key = f"residuals {mid}"
+            if self.driver.live(mid) and mid in self.diag.models_online:
+                if key not in self.models.sources:
+                    self.models.expect(key, now)
+            else:
+                self.models.forget(key)
+            if present is not None:
+                out += self.driver.on_presence(mid, v.node in present, now)
+        stale = {**self.inputs.stale(now), **self._models_stale(now)}
+        for k in set(stale) ^ set(self._stale):
+            out.append(Note("warn" if k in stale else "info", "",
+                            stale.get(k, f"{k}: receiving again")))
+        self._stale = stale
+        return out + self.driver.tick(now, ready) + self._steps()
+
+    def _models_stale(self, now: float) -> dict[str, str]:
+        """A model is stale when features kept coming for ``model_wall_s`` after its last
+        residuals (frozen or overloaded); without features no model is judged."""
+        fw = self.inputs.sources.get("features")
+        if fw is None or math.isnan(fw.wall):
+            return {}
+        out = {}
+        for k, why in self.models.stale(now).items():
+            s = self.models.sources[k]
+            last = s.wall if not math.isnan(s.wall) else s.since_wall
+            if fw.wall - last > self.models.wall_timeout_s:
+                out[k] = why
+        return out
+
+    def entries(self, now: float) -> list[Entry]:
+        warn_lag = self.aligner.lag_s / 2
+        return ([diagnosis_entry(self.last, self.cfg.plant, {k: v for k, v in self._stale.items()
+                                                             if not k.startswith("residuals")},
+                                 self.aligner.skipped > 0),
+                 pipeline_entry(self.aligner, warn_lag)]
+                + input_entries(self.inputs, self._stale)
+                + model_entries(self.driver, self._stale))

@@ -347,8 +347,9 @@ class SupervisorCore:
         out: list = []
         for st in self.aligner.ready(self._expected()):
             sym = self._symptoms.pop(st.index, None)
-            skip = not st.complete or any(k.startswith("residuals ") and
-                                          self.driver.live(k[10:]) for k in self._stale)
+            # A stale model (frozen, or gone without leaving the graph yet) is reported and
+            # left out, as a dead one is; no-elimination keeps it from causing a wrong isolation
+            skip = not st.complete
             step = self.diag.update(st.index, st.t, {} if skip else st.residuals,
                                     symptoms=None if skip else sym)
             d = step.diagnosis

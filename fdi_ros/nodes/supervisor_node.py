@@ -111,8 +111,7 @@ class SupervisorNode(Node):
                     req.transition.id = a.transition
                 cli.call_async(req).add_done_callback(lambda f, a=a: self._done(f, a))
             elif isinstance(a, Note):
-                log = self.get_logger()
-                {"info": log.info, "warn": log.warn, "error": log.error}[a.level](a.text)
+                self._log(a)
                 if a.level != "info" or a.model_id:
                     self._publish_diagnostics()
             elif isinstance(a, Publish) and a.what == "diagnosis":
@@ -123,6 +122,14 @@ class SupervisorNode(Node):
                     f: getattr(s, f) for f in ("valid", "status", "names", "levels", "residuals",
                                                "threshold_low", "threshold_high",
                                                "threshold_intense")}))
+
+    def _log(self, a: Note) -> None:  # one call site per severity (rclpy requires it)
+        if a.level == "error":
+            self.get_logger().error(a.text)
+        elif a.level == "warn":
+            self.get_logger().warn(a.text)
+        else:
+            self.get_logger().info(a.text)
 
     def _done(self, fut: Any, a: Any) -> None:
         now, drv = time.monotonic(), self.core.driver

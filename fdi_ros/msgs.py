@@ -173,6 +173,12 @@ class MessageFactory:
             residuals=_f64(residuals, s), threshold_low=_f64(threshold_low, s),
             threshold_high=_f64(threshold_high, s), threshold_intense=_f64(threshold_intense, s))
 
+    def symptom_state(self, index: int, t: float, s: Any) -> Any:
+        """Symptoms message from a symptom stage's state record."""
+        return self.symptoms(index=index, t=t, **{f: getattr(s, f) for f in (
+            "valid", "status", "names", "levels", "residuals", "threshold_low",
+            "threshold_high", "threshold_intense")})
+
     def diagnosis(self, d: Diagnosis) -> Any:
         return self.cls("Diagnosis")(
             header=self.header(d.t), index=int(d.index), t_s=float(d.t), state=d.state,
@@ -266,3 +272,14 @@ def diagnostic_array(entries: Any, t_s: float) -> Any:
                                    values=[KeyValue(key=k, value=v) for k, v in e.values])
                   for e in entries]
     return arr
+
+
+def raw_header_stamp(raw: bytes) -> float:
+    """Header stamp [s] of a serialized message whose first field is a std_msgs/Header (CDR:
+    4 bytes of encapsulation, then sec and nanosec), without deserialising the rest; NaN if
+    the bytes cannot hold one."""
+    if len(raw) < 12:
+        return math.nan
+    order = "little" if raw[1] & 1 else "big"
+    sec = int.from_bytes(raw[4:8], order, signed=True)
+    return sec + int.from_bytes(raw[8:12], order) * 1e-9

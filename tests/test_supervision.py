@@ -130,3 +130,19 @@ def test_stale_entry_level():
 
     e = diagnosis_entry(None, "diesel", {"features": "stale: no features for 3.0 s"}, False)
     assert e.level == STALE and "stale" in e.message and "features" in e.message
+
+
+def test_raw_header_stamp_of_serialized_blocks():
+    """The supervisor reads only the stamp of a sensor block: same as full deserialisation."""
+    import numpy as np
+
+    from fdi_ros import msgs
+    from fdi_ros.core.types import SampleBlock
+
+    fac = msgs.MessageFactory("rosbags")
+    b = SampleBlock("diesel", 3, np.array([6.42, 6.435]), np.array([1.0, 2.0]), ("n",),
+                    ("rpm",), np.array([[2000.0, 2001.0]]))
+    m = fac.sensor_block(b)
+    raw = msgs.typestore().serialize_cdr(m, "fdi_msgs/msg/SensorBlock")
+    assert msgs.raw_header_stamp(bytes(raw)) == pytest.approx(msgs.stamp_seconds(m.header))
+    assert math.isnan(msgs.raw_header_stamp(b"\x00\x01"))

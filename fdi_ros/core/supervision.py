@@ -311,9 +311,35 @@ class SupervisorCore:
         self._symptoms: dict[int, Any] = {}
         self._stale: dict[str, str] = {}
 
+    @classmethod
+    def from_params(cls, p: Mapping[str, Any]) -> SupervisorCore:
+        """From the node's parameters (see :data:`PARAMS`); the fault memory in
+        ``<state_dir>/<plant>_faults.sqlite`` (state_dir: the parameter, else
+        ``$FDI_ROS_STATE_DIR``, else ``out/state``)."""
+        import os
+        from pathlib import Path
+
+        from fdi_ros.core.bankdriver import DriverPolicy
+        from fdi_ros.core.faultmemory import FaultStore
+        from fdi_ros.core.graphconfig import load_graph_config
+
+        if not p["graph_config"]:
+            raise ValueError("parameter 'graph_config' is required")
+        cfg = load_graph_config(p["graph_config"])
+        state = Path(p["state_dir"] or os.environ.get("FDI_ROS_STATE_DIR", "out/state"))
+        core = cls(cfg, policy=DriverPolicy(node_timeout_s=cfg.node_timeout_s,
+                                            policy=p["reconcile"],
+                                            reconcile_after_s=p["reconcile_after_s"]),
+                   lag_s=p["lag_s"], stale_s=p["stale_s"], stale_wall_s=p["stale_wall_s"],
+                   model_wall_s=p["model_wall_s"], confirm_s=p["confirm_s"],
+                   heal_s=p["heal_s"], store=FaultStore(state / f"{cfg.plant}_faults.sqlite"))
+        core.set("t0_s", p["t0_s"])
+        return core
+
     # -- data (plant time) --------------------------------------------------------------------
     def block(self, t: float, wall: float) -> None:
-        self.inputs.seen("sensor_block", t, wall)
+        if math.isfinite(t):  # a malformed block is not data
+            self.inputs.seen("sensor_block", t, wall)
 
     def features(self, index: int, t: float, wall: float, values: dict | None = None) -> list:
         self.inputs.seen("features", t, wall)

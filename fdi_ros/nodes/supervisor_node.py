@@ -8,16 +8,20 @@ actions become service calls and publications. All decisions are in the core.
 
 from __future__ import annotations
 
-import os
 import time
-from pathlib import Path
 from typing import Any
 
+from diagnostic_msgs.msg import DiagnosticArray
+from fdi_msgs.msg import Diagnosis, Features, Residuals, SensorBlock, Symptoms
+from fdi_msgs.srv import ClearFaults, GetFaults
+from lifecycle_msgs.msg import TransitionEvent
+from lifecycle_msgs.srv import ChangeState as CS
+from lifecycle_msgs.srv import GetState as GS
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 
 from fdi_ros import msgs
-from fdi_ros.core.bankdriver import ChangeState, DriverPolicy, GetState, Note
+from fdi_ros.core.bankdriver import ChangeState, GetState, Note
 from fdi_ros.core.supervision import PARAMS, Publish, SupervisorCore
 from fdi_ros.nodes.common import DATA_QOS, run_node
 
@@ -25,30 +29,9 @@ from fdi_ros.nodes.common import DATA_QOS, run_node
 class SupervisorNode(Node):
     def __init__(self) -> None:
         super().__init__("fdi_supervisor")
-        from diagnostic_msgs.msg import DiagnosticArray
-        from fdi_msgs.msg import Diagnosis, Features, Residuals, SensorBlock, Symptoms
-        from fdi_msgs.srv import ClearFaults, GetFaults
-        from lifecycle_msgs.msg import TransitionEvent
-        from lifecycle_msgs.srv import ChangeState as CS
-        from lifecycle_msgs.srv import GetState as GS
-
-        from fdi_ros.core.faultmemory import FaultStore
-        from fdi_ros.core.graphconfig import load_graph_config
-
         p = {k: self._declare(k, *v) for k, v in PARAMS.items()}
-        if not p["graph_config"]:
-            raise ValueError("parameter 'graph_config' is required")
-        self.cfg = load_graph_config(p["graph_config"])
-        state = Path(p["state_dir"] or os.environ.get("FDI_ROS_STATE_DIR", "out/state"))
-        self.db = state / f"{self.cfg.plant}_faults.sqlite"
-        self.core = SupervisorCore(
-            self.cfg, policy=DriverPolicy(node_timeout_s=self.cfg.node_timeout_s,
-                                          policy=p["reconcile"],
-                                          reconcile_after_s=p["reconcile_after_s"]),
-            lag_s=p["lag_s"], stale_s=p["stale_s"], stale_wall_s=p["stale_wall_s"],
-            model_wall_s=p["model_wall_s"], confirm_s=p["confirm_s"], heal_s=p["heal_s"],
-            store=FaultStore(self.db))
-        self.core.set("t0_s", p["t0_s"])
+        self.core = SupervisorCore.from_params(p)
+        self.cfg = self.core.cfg
         self.add_on_set_parameters_callback(self._on_set)
         self._fac = msgs.MessageFactory("rclpy")
         self.clients_ = {}
@@ -79,7 +62,7 @@ class SupervisorNode(Node):
         self.create_timer(0.5, lambda: self._do(self.core.tick(time.monotonic(), {}, {
             n for n, _ in self.get_node_names_and_namespaces()})))
         self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
-        self.get_logger().info(f"bank of {len(self.clients_)} models; fault memory {self.db} "
+        self.get_logger().info(f"fault memory {self.core.store.path} "
                                f"({len(self.core.memory.records)} records)")
 
     def _declare(self, name: str, default: Any, text: str, ro: bool, rng: Any) -> Any:
@@ -97,10 +80,8 @@ class SupervisorNode(Node):
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
 
-    def _on_block(self, raw: bytes) -> None:
-        if len(raw) >= 12:  # CDR: 4 bytes encapsulation, then header.stamp (sec, nanosec)
-            sec, nsec = int.from_bytes(raw[4:8], "little"), int.from_bytes(raw[8:12], "little")
-            self.core.block(sec + nsec * 1e-9, time.monotonic())
+    def _on_block(self, raw: bytes) -> None:  # only the stamp matters: no deserialisation
+        self.core.block(msgs.raw_header_stamp(raw), time.monotonic())
 
     def _do(self, actions: list) -> None:
         for a in actions:
@@ -117,11 +98,7 @@ class SupervisorNode(Node):
             elif isinstance(a, Publish) and a.what == "diagnosis":
                 self.pub["diagnosis"].publish(self._fac.diagnosis(a.value))
             elif isinstance(a, Publish) and a.what == "symptoms":
-                k, t, s = a.value
-                self.pub["symptoms"].publish(self._fac.symptoms(index=k, t=t, **{
-                    f: getattr(s, f) for f in ("valid", "status", "names", "levels", "residuals",
-                                               "threshold_low", "threshold_high",
-                                               "threshold_intense")}))
+                self.pub["symptoms"].publish(self._fac.symptom_state(*a.value))
 
     def _log(self, a: Note) -> None:  # one call site per severity (rclpy requires it)
         if a.level == "error":

@@ -133,8 +133,11 @@ class Diagnoser:
             ref = residuals.get(self.reference_id)
             if symptoms is None and ref is not None:
                 symptoms = self.symptoms_of(ref)
-            if ref is None and not self.supervisor.isolated:
-                feed = {}  # without the reference model nothing can be said at this step
+            if (ref is None or not ref.valid) and not self.supervisor.isolated:
+                # Without valid reference residuals nothing can be said at this step: the
+                # hypotheses never compete without the reference model (e.g. while it is away
+                # or restarting after an external lifecycle change).
+                feed = {}
             active = symptoms is not None and symptoms.valid and any(symptoms.levels)
             if active and self.table is not None:
                 candidates = tuple(consistent_faults(symptoms.as_table_order(), self.table,

@@ -43,6 +43,8 @@ PARAMS = {  # name: (default, description, read_only, (min, max) or None)
     "heal_s": (5.0, "plant s of passed diagnosis before a fault is HEALED", True, (0.0, 1e6)),
     "state_dir": ("", "graph state directory (default $FDI_ROS_STATE_DIR or out/state)", True,
                   None),
+    "snapshot_s": (5.0, "plant s of data before a confirmation in its snapshot bag", True,
+                   (0.0, 600.0)),
     "diagnostics_period_s": (1.0, "period of /diagnostics [wall s]", True, (0.05, 60.0)),
 }
   # diagnostic_msgs/DiagnosticStatus levels
@@ -291,7 +293,10 @@ class SupervisorCore:
 
     def __init__(self, cfg: Any, *, policy: Any = None, lag_s: float = 2.0,
                  stale_s: float = 0.5, stale_wall_s: float = 2.0, model_wall_s: float = 1.0,
-                 confirm_s: float = 0.1, heal_s: float = 5.0, store: Any = None) -> None:
+                 confirm_s: float = 0.1, heal_s: float = 5.0, store: Any = None,
+                 snapshot_s: float = 5.0) -> None:
+        from collections import deque
+
         from fdi_ros.core.diagnoser import Diagnoser
         from fdi_ros.core.faultmemory import FaultMemory
 
@@ -310,6 +315,10 @@ class SupervisorCore:
         self._features: dict[int, dict] = {}
         self._symptoms: dict[int, Any] = {}
         self._stale: dict[str, str] = {}
+        # the last snapshot_s of plant time as core records (features, residuals, diagnoses),
+        # for the snapshot bag written at a confirmation
+        self.snapshot_s = snapshot_s
+        self.ring: deque = deque()
 
     @classmethod
     def from_params(cls, p: Mapping[str, Any]) -> SupervisorCore:
@@ -332,7 +341,8 @@ class SupervisorCore:
                                             reconcile_after_s=p["reconcile_after_s"]),
                    lag_s=p["lag_s"], stale_s=p["stale_s"], stale_wall_s=p["stale_wall_s"],
                    model_wall_s=p["model_wall_s"], confirm_s=p["confirm_s"],
-                   heal_s=p["heal_s"], store=FaultStore(state / f"{cfg.plant}_faults.sqlite"))
+                   heal_s=p["heal_s"], store=FaultStore(state / f"{cfg.plant}_faults.sqlite"),
+                   snapshot_s=p["snapshot_s"])
         core.set("t0_s", p["t0_s"])
         return core
 
@@ -341,12 +351,26 @@ class SupervisorCore:
         if math.isfinite(t):  # a malformed block is not data
             self.inputs.seen("sensor_block", t, wall)
 
-    def features(self, index: int, t: float, wall: float, values: dict | None = None) -> list:
-        self.inputs.seen("features", t, wall)
-        self.aligner.add_features(index, t)
-        if values is not None:
-            self._features[index] = values
+    def features(self, fv: Any, wall: float) -> list:
+        """A feature vector (:class:`fdi_ros.core.types.FeatureVector`) arrived."""
+        self.inputs.seen("features", fv.t_end, wall)
+        self.aligner.add_features(fv.index, fv.t_end)
+        self._features[fv.index] = fv.as_dict()
+        self._keep(fv.t_end, "features", fv)
         return self._steps()
+
+    def _keep(self, t: float, kind: str, record: Any) -> None:
+        self.ring.append((t, kind, record))
+        while self.ring and self.ring[0][0] < t - self.snapshot_s:
+            self.ring.popleft()
+
+    def snapshot_path(self, r: Any) -> Any:
+        """A new bag directory beside the fault memory for a confirmation of record ``r``."""
+        base = self.store.path.parent / f"snapshot_{r.fault}_{r.occurrences}_{r.last_t_s:.3f}s"
+        path, n = base, 1
+        while path.exists():
+            path, n = base.with_name(f"{base.name}.{n}"), n + 1
+        return path
 
     def residual(self, rv: Any, wall: float) -> list:
         if rv.model_id not in self.driver.nodes:
@@ -356,6 +380,7 @@ class SupervisorCore:
             return []  # a model away from its desired state: its residuals are not valid
         if not self.aligner.add_residual(rv.model_id, rv.index, rv):
             return []
+        self._keep(rv.t, "residuals", rv)
         out = []
         if rv.model_id == self.diag.reference_id and rv.index not in self._symptoms:
             s = self.diag.symptoms_of(rv)  # at once: the symptom need not wait for the bank
@@ -385,6 +410,7 @@ class SupervisorCore:
             if sym is None and step.symptoms is not None and not skip:
                 out.append(Publish("symptoms", (st.index, st.t, step.symptoms)))
             out.append(Publish("diagnosis", d))
+            self._keep(d.t, "diagnosis", d)
             if d.state != (self.last.state if self.last is not None else ""):
                 out.append(Note("info", "", f"t = {st.t:.3f} s segment {st.index}: {d.state}; "
                                 f"I* = {d.min_residual_model or '-'}, candidates "

@@ -20,7 +20,7 @@ from lifecycle_msgs.srv import GetState as GS
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 
-from fdi_ros import msgs
+from fdi_ros import bag, msgs
 from fdi_ros.core.bankdriver import ChangeState, GetState, Note
 from fdi_ros.core.supervision import PARAMS, Publish, SupervisorCore
 from fdi_ros.nodes.common import DATA_QOS, run_node
@@ -31,11 +31,10 @@ class SupervisorNode(Node):
         super().__init__("fdi_supervisor")
         p = {k: self._declare(k, *v) for k, v in PARAMS.items()}
         self.core = SupervisorCore.from_params(p)
-        self.cfg = self.core.cfg
         self.add_on_set_parameters_callback(self._on_set)
         self._fac = msgs.MessageFactory("rclpy")
         self.clients_ = {}
-        for e in self.cfg.bank:
+        for e in self.core.cfg.bank:
             self.clients_[e.id] = (self.create_client(CS, f"/{e.node_name}/change_state"),
                                    self.create_client(GS, f"/{e.node_name}/get_state"))
             self.create_subscription(
@@ -48,8 +47,7 @@ class SupervisorNode(Node):
         self.create_subscription(Residuals, "/fdi/residuals", lambda m: self._do(
             self.core.residual(msgs.to_residuals(m), time.monotonic())), DATA_QOS)
         self.create_subscription(Features, "/fdi/features", lambda m: self._do(
-            self.core.features(int(m.index), float(m.t_end_s), time.monotonic(),
-                               dict(zip(m.names, map(float, m.values))))), DATA_QOS)
+            self.core.features(msgs.to_features(m), time.monotonic())), DATA_QOS)
         self.create_subscription(SensorBlock, "/fdi/sensor_block",
                                  self._on_block, DATA_QOS, raw=True)
         self.create_service(GetFaults, "/fdi/get_faults", self._get_faults)
@@ -95,6 +93,9 @@ class SupervisorNode(Node):
                 self._log(a)
                 if a.level != "info" or a.model_id:
                     self._publish_diagnostics()
+            elif isinstance(a, Publish) and a.what == "confirmed":
+                self.get_logger().info(bag.write_snapshot(self.core.snapshot_path(a.value),
+                                                          self.core.ring))
             elif isinstance(a, Publish) and a.what == "diagnosis":
                 self.pub["diagnosis"].publish(self._fac.diagnosis(a.value))
             elif isinstance(a, Publish) and a.what == "symptoms":

@@ -63,6 +63,19 @@ def test_external_deactivate_and_frozen_preprocessor_fault_free(diesel_bank, tmp
         d = w.last_diagnosis()
         if d is None:
             return
+        if "params" not in done:  # live changes validated: two rejected, one accepted
+            from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+            from rcl_interfaces.srv import SetParameters
+
+            cli = w.node.create_client(SetParameters, "/fdi_supervisor/set_parameters")
+            sv = ParameterValue(type=ParameterType.PARAMETER_STRING, string_value="bogus")
+            dv = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=-1.0)
+            ok = ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=0.3)
+            req = SetParameters.Request(parameters=[Parameter(name="reconcile", value=sv)])
+            done["params"] = [_call(w, cli, req, "set reconcile")]
+            for v in (dv, ok):
+                req = SetParameters.Request(parameters=[Parameter(name="t0_s", value=v)])
+                done["params"].append(_call(w, cli, req, "set t0_s"))
         if "external" not in done and d.t >= 2.0:
             # what `ros2 lifecycle set /fdi_model_nominal deactivate` does
             cli = w.node.create_client(ChangeState, "/fdi_model_nominal/change_state")
@@ -82,6 +95,9 @@ def test_external_deactivate_and_frozen_preprocessor_fault_free(diesel_bank, tmp
     run, w = run_live(CONFIG, scenario=_scenario(tmp_path, faults=False, duration=14.0),
                       during=during, timeout_s=120)
     assert done["external"].done() and done["external"].result().success
+    bad_policy, bad_t0, good_t0 = (r.results[0] for r in done["params"])
+    assert not bad_policy.successful and "policy" in bad_policy.reason
+    assert not bad_t0.successful and "t0_s" in bad_t0.reason and good_t0.successful
     assert run.isolated_faults == () and not run.isolations
     assert not [d for _, d in w.seen.diagnoses if d.state == "isolated"]
     nominal = _statuses(w, SUP + "model nominal")
@@ -135,6 +151,12 @@ def test_fault_memory_survives_a_killed_supervisor(diesel_bank, tmp_path, monkey
     assert before.status == after.status == "CONFIRMED"
     assert after.occurrences == 1 and 6.0 < after.first_t_s < 7.0
     assert (state / "diesel_faults.sqlite").is_file()
+    # the snapshot bag of the confirmation, beside the database, readable offline
+    from fdi_ros import bag
+
+    (snap,) = [p for p in state.iterdir() if p.name.startswith("snapshot_leak_ic_engine_1_")]
+    diags = bag.read_diagnoses(snap)
+    assert diags and diags[-1].t - diags[0].t > 1.0 and bag.read_residuals(snap)
 
 
 def test_true_hypothesis_model_killed_no_wrong_isolation(diesel_bank, tmp_path, monkeypatch):

@@ -161,3 +161,23 @@ def test_no_isolation_by_elimination(tmp_path):
         assert d.isolated_faults == (), (t, d)
     assert states[-1] == "detected" and d.candidate_faults == ("a",)
     assert d.extra["not_isolable"] and d.extra["away"] == ("a",)
+
+
+def test_no_isolation_while_the_believed_model_is_away(tmp_path):
+    """Without a symptom stage (the turbofan's case): while the nominal model is away (an
+    external deactivate), the other hypotheses never compete among themselves."""
+    cfg_file = tmp_path / "config" / "g.yaml"
+    cfg_file.parent.mkdir()
+    cfg_file.write_text(CONFIG)
+    diag = Diagnoser(load_graph_config(cfg_file))
+
+    def rv(mid, t, norm):
+        return ResidualVector(mid, 0, t, True, "", ("r",), ("1",), np.array([norm]), norm)
+
+    for k in range(40):
+        t = 0.1 * k
+        d = diag.update(k, t, {"a": rv("a", t, 0.1), "b": rv("b", t, 2.0)}).diagnosis
+        assert d.state == "not_valid" and d.isolated_faults == ()
+    d = diag.update(40, 4.0, {"nominal": rv("nominal", 4.0, 0.0), "a": rv("a", 4.0, 1.0),
+                              "b": rv("b", 4.0, 1.0)}).diagnosis
+    assert d.state == "no_fault"

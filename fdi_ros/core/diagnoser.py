@@ -159,6 +159,11 @@ class Diagnoser:
                         k == self.reference_id or not v.norm > self.explain_norm)}
                     not_isolable = not any(k != self.reference_id and v.valid
                                            for k, v in feed.items())
+        fm = feed.get(self.supervisor.fault_model)
+        if fm is None or not fm.valid:
+            # The model believed to match the plant (nominal at start) is the baseline of the
+            # comparison: without it a change of I* would be isolation by elimination.
+            feed = {}
         d = self.supervisor.update(t, feed)
         if symptoms is not None and symptoms.valid and any(symptoms.levels) \
                 and math.isnan(self.detection_time):

@@ -146,3 +146,81 @@ def test_raw_header_stamp_of_serialized_blocks():
     raw = msgs.typestore().serialize_cdr(m, "fdi_msgs/msg/SensorBlock")
     assert msgs.raw_header_stamp(bytes(raw)) == pytest.approx(msgs.stamp_seconds(m.header))
     assert math.isnan(msgs.raw_header_stamp(b"\x00\x01"))
+
+
+
+TOY = """
+fdi_graph:
+  plant: toy
+  t0_s: 0.3
+  bank:
+    - {id: nominal, faults: [], model: {type: toy_offset, offset: 0.0}}
+    - {id: a, faults: [a], model: {type: toy_offset, offset: 1.0}}
+    - {id: b, faults: [b], model: {type: toy_offset, offset: -1.0}}
+"""
+
+
+def _core(tmp_path, store=None):
+    from fdi_ros.core.bankdriver import ACTIVE
+    from fdi_ros.core.graphconfig import load_graph_config
+    from fdi_ros.core.supervision import SupervisorCore
+
+    cfg_file = tmp_path / "config" / "toy.yaml"
+    cfg_file.parent.mkdir(exist_ok=True)
+    cfg_file.write_text(TOY)
+    core = SupervisorCore(load_graph_config(cfg_file), confirm_s=0.05, store=store)
+    for mid in core.driver.nodes:  # the bank on line, as get_state confirmed it
+        core.driver.on_get_result(mid, ACTIVE, 0.0)
+    return core
+
+
+def _feed(core, k, y, wall, skip=()):
+    import numpy as np
+
+    from fdi_ros.core.types import FeatureVector, ResidualVector
+
+    t = 0.015 * (k + 1)
+    out = core.features(FeatureVector("toy", k, t - 0.015, t, 0.0, True, "", ("y",), ("1",),
+                                      np.array([y])), wall)
+    for mid, off in (("nominal", 0.0), ("a", 1.0), ("b", -1.0)):
+        if mid not in skip:
+            r = y - off
+            out += core.residual(ResidualVector(mid, k, t, True, "", ("r",), ("1",),
+                                                np.array([r]), abs(r)), wall)
+    return out
+
+
+def test_core_external_deactivate_never_isolates_and_memory_reloads(tmp_path):
+    from fdi_ros.core.bankdriver import ACTIVE, INACTIVE
+    from fdi_ros.core.supervision import Publish
+
+    store = FaultStore(tmp_path / "state" / "toy.sqlite")
+    core = _core(tmp_path, store)
+    wall = 0.0
+    for k in range(20):  # fault free
+        wall += 0.015
+        _feed(core, k, 0.0, wall)
+    assert core.last.state == "no_fault"
+    # someone deactivates the nominal model; the plant is fault free but a's residual is
+    # smallest among the rest: never isolated
+    core.driver.on_transition_event("nominal", ACTIVE, INACTIVE, wall)
+    for k in range(20, 80):
+        wall += 0.015
+        _feed(core, k, 0.4, wall, skip=("nominal",))
+    assert core.last.isolated_faults == () and core.last.state == "not_valid"
+    names = {e.name: e for e in core.entries(wall)}
+    assert "external" in names["fdi_supervisor: model nominal"].message
+    # back (reconciled), then a real fault a: isolated, confirmed, persisted
+    core.driver.on_transition_event("nominal", INACTIVE, ACTIVE, wall)
+    out = []
+    for k in range(80, 140):
+        wall += 0.015
+        out += _feed(core, k, 1.0, wall)
+    assert core.last.isolated_faults == ("a",)
+    assert [p.value.fault for p in out if isinstance(p, Publish) and p.what == "confirmed"] \
+        == ["a"]
+    assert core.ring and min(t for t, _, _ in core.ring) >= core.last.t - core.snapshot_s
+    store.close()
+    again = _core(tmp_path, FaultStore(tmp_path / "state" / "toy.sqlite"))
+    assert again.memory.records["a"].status == "CONFIRMED"
+    assert again.memory.records["a"].freeze_frame["features"] == {"y": 1.0}

@@ -224,3 +224,16 @@ def test_core_external_deactivate_never_isolates_and_memory_reloads(tmp_path):
     again = _core(tmp_path, FaultStore(tmp_path / "state" / "toy.sqlite"))
     assert again.memory.records["a"].status == "CONFIRMED"
     assert again.memory.records["a"].freeze_frame["features"] == {"y": 1.0}
+
+
+def test_core_live_settings_validated(tmp_path):
+    core = _core(tmp_path)
+    core.set("t0_s", 0.6)
+    core.set("explain_norm", 1.5)
+    core.set("reconcile", "respect")
+    assert core.diag.supervisor.t0_s == 0.6 and core.diag.explain_norm == 1.5
+    assert core.driver.policy.policy == "respect"
+    for name, bad in (("t0_s", -1.0), ("explain_norm", 0.0), ("lag_s", 0.0),
+                      ("reconcile", "bogus"), ("reconcile_after_s", math.inf)):
+        with pytest.raises(ValueError):
+            core.set(name, bad)

@@ -35,6 +35,8 @@ PARAMS = {  # name: (default, description, read_only, (min, max) or None)
                      (0.1, 600.0)),
     "t0_s": (math.nan, "isolation hold time T0 [plant s] (default: the graph config)", False,
              None),
+    "explain_norm": (math.nan, "largest residual norm of a hypothesis that explains the data "
+                     "(default: the graph config)", False, None),
     "reconcile": ("reconcile", "external lifecycle changes: 'reconcile' or 'respect'", False,
                   None),
     "reconcile_after_s": (2.0, "wall s before an external change is undone", False,
@@ -344,6 +346,7 @@ class SupervisorCore:
                    heal_s=p["heal_s"], store=FaultStore(state / f"{cfg.plant}_faults.sqlite"),
                    snapshot_s=p["snapshot_s"])
         core.set("t0_s", p["t0_s"])
+        core.set("explain_norm", p["explain_norm"])
         return core
 
     # -- data (plant time) --------------------------------------------------------------------
@@ -444,6 +447,10 @@ class SupervisorCore:
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"t0_s must be a finite time >= 0 s, not {value}")
             self.diag.supervisor.t0_s = float(value)
+        elif name == "explain_norm" and not math.isnan(value):
+            if not value > 0:
+                raise ValueError(f"explain_norm must be > 0, not {value}")
+            self.diag.explain_norm = float(value)
         elif name == "lag_s":
             if not value > 0:
                 raise ValueError(f"lag_s must be > 0, not {value}")

@@ -18,6 +18,7 @@ from lifecycle_msgs.msg import TransitionEvent
 from lifecycle_msgs.srv import ChangeState as CS
 from lifecycle_msgs.srv import GetState as GS
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
+from rclpy.logging import get_logger
 from rclpy.node import Node
 
 from fdi_ros import bag, msgs
@@ -33,6 +34,8 @@ class SupervisorNode(Node):
         self.core = SupervisorCore.from_params(p)
         self.add_on_set_parameters_callback(self._on_set)
         self._fac = msgs.MessageFactory("rclpy")
+        # one logger instance per severity: rclpy refuses two severities from one call site
+        self._loggers = {lv: get_logger(self.get_name()) for lv in ("info", "warn", "error")}
         self.clients_ = {}
         for e in self.core.cfg.bank:
             self.clients_[e.id] = (self.create_client(CS, f"/{e.node_name}/change_state"),
@@ -44,10 +47,10 @@ class SupervisorNode(Node):
         self.pub = {"symptoms": self.create_publisher(Symptoms, "/fdi/symptoms", DATA_QOS),
                     "diagnosis": self.create_publisher(Diagnosis, "/fdi/diagnosis", DATA_QOS),
                     "ros": self.create_publisher(DiagnosticArray, "/diagnostics", 10)}
-        self.create_subscription(Residuals, "/fdi/residuals", lambda m: self._do(
-            self.core.residual(msgs.to_residuals(m), time.monotonic())), DATA_QOS)
-        self.create_subscription(Features, "/fdi/features", lambda m: self._do(
-            self.core.features(msgs.to_features(m), time.monotonic())), DATA_QOS)
+        self.create_subscription(Residuals, "/fdi/residuals",
+                                 self._safe(msgs.to_residuals, self.core.residual), DATA_QOS)
+        self.create_subscription(Features, "/fdi/features",
+                                 self._safe(msgs.to_features, self.core.features), DATA_QOS)
         self.create_subscription(SensorBlock, "/fdi/sensor_block",
                                  self._on_block, DATA_QOS, raw=True)
         self.create_service(GetFaults, "/fdi/get_faults", self._get_faults)
@@ -55,10 +58,8 @@ class SupervisorNode(Node):
         # One thread: answers, data and timers never run concurrently (no locks); every
         # service call is async, so nothing blocks the executor.
         self.create_timer(0.05, lambda: self._do(self.core.tick(time.monotonic(), {
-            i: c.service_is_ready() and g.service_is_ready()
-            for i, (c, g) in self.clients_.items()}, None)))
-        self.create_timer(0.5, lambda: self._do(self.core.tick(time.monotonic(), {}, {
-            n for n, _ in self.get_node_names_and_namespaces()})))
+            i: c.service_is_ready() and g.service_is_ready() for i, (c, g) in
+            self.clients_.items()}, {n for n, _ in self.get_node_names_and_namespaces()})))
         self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
         self.get_logger().info(f"fault memory {self.core.store.path} "
                                f"({len(self.core.memory.records)} records)")
@@ -78,6 +79,15 @@ class SupervisorNode(Node):
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
 
+    def _safe(self, convert: Any, feed: Any) -> Any:
+        def callback(m: Any) -> None:  # a malformed message is dropped and logged, never fatal
+            try:
+                rec = convert(m)
+            except (ValueError, TypeError, KeyError, IndexError) as exc:
+                return self.get_logger().warn(f"malformed message dropped: {exc}")
+            self._do(feed(rec, time.monotonic()))
+        return callback
+
     def _on_block(self, raw: bytes) -> None:  # only the stamp matters: no deserialisation
         self.core.block(msgs.raw_header_stamp(raw), time.monotonic())
 
@@ -90,7 +100,7 @@ class SupervisorNode(Node):
                     req.transition.id = a.transition
                 cli.call_async(req).add_done_callback(lambda f, a=a: self._done(f, a))
             elif isinstance(a, Note):
-                self._log(a)
+                getattr(self._loggers[a.level], a.level)(a.text)
                 if a.level != "info" or a.model_id:
                     self._publish_diagnostics()
             elif isinstance(a, Publish) and a.what == "confirmed":
@@ -100,14 +110,6 @@ class SupervisorNode(Node):
                 self.pub["diagnosis"].publish(self._fac.diagnosis(a.value))
             elif isinstance(a, Publish) and a.what == "symptoms":
                 self.pub["symptoms"].publish(self._fac.symptom_state(*a.value))
-
-    def _log(self, a: Note) -> None:  # one call site per severity (rclpy requires it)
-        if a.level == "error":
-            self.get_logger().error(a.text)
-        elif a.level == "warn":
-            self.get_logger().warn(a.text)
-        else:
-            self.get_logger().info(a.text)
 
     def _done(self, fut: Any, a: Any) -> None:
         now, drv = time.monotonic(), self.core.driver
@@ -123,8 +125,7 @@ class SupervisorNode(Node):
                                        int(r.current_state.id), now, err))
 
     def _get_faults(self, req: Any, res: Any) -> Any:
-        res.faults = msgs.fault_records(self.core.memory.records.values())
-        return res
+        return GetFaults.Response(faults=msgs.fault_records(self.core.memory.records.values()))
 
     def _clear_faults(self, req: Any, res: Any) -> Any:
         try:

@@ -237,3 +237,16 @@ def test_core_live_settings_validated(tmp_path):
                       ("reconcile", "bogus"), ("reconcile_after_s", math.inf)):
         with pytest.raises(ValueError):
             core.set(name, bad)
+
+
+def test_threshold_scale_live(diesel_bank):
+    from fdi_ros.core.graphconfig import load_graph_config
+    from fdi_ros.core.supervision import SupervisorCore
+
+    core = SupervisorCore(load_graph_config(diesel_bank))
+    base = core.diag.symptom_gen.config.threshold
+    core.set("threshold_scale", 2.0)
+    core.set("threshold_scale", 1.5)  # relative to the configured thresholds, not compounded
+    assert core.diag.symptom_gen.config.threshold == pytest.approx([1.5 * x for x in base])
+    with pytest.raises(ValueError, match="threshold_scale"):
+        core.set("threshold_scale", 0.0)

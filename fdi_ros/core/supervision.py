@@ -35,6 +35,8 @@ PARAMS = {  # name: (default, description, read_only, (min, max) or None)
                      (0.1, 600.0)),
     "t0_s": (math.nan, "isolation hold time T0 [plant s] (default: the graph config)", False,
              None),
+    "threshold_scale": (1.0, "symptom thresholds times this (the supervisor's symptoms only)",
+                        False, (0.1, 10.0)),
     "explain_norm": (math.nan, "largest residual norm of a hypothesis that explains the data "
                      "(default: the graph config)", False, None),
     "reconcile": ("reconcile", "external lifecycle changes: 'reconcile' or 'respect'", False,
@@ -347,6 +349,8 @@ class SupervisorCore:
                    snapshot_s=p["snapshot_s"])
         core.set("t0_s", p["t0_s"])
         core.set("explain_norm", p["explain_norm"])
+        if core.diag.symptom_gen is not None:
+            core.set("threshold_scale", p["threshold_scale"])
         return core
 
     # -- data (plant time) --------------------------------------------------------------------
@@ -447,6 +451,13 @@ class SupervisorCore:
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"t0_s must be a finite time >= 0 s, not {value}")
             self.diag.supervisor.t0_s = float(value)
+        elif name == "threshold_scale":
+            gen = self.diag.symptom_gen
+            if gen is None or not (math.isfinite(value) and value > 0):
+                raise ValueError(f"threshold_scale {value}: needs a symptom stage and a "
+                                 "finite value > 0")
+            base = self._base_symptoms = getattr(self, "_base_symptoms", gen.config)
+            gen.config = replace(base, threshold=tuple(value * x for x in base.threshold))
         elif name == "explain_norm" and not math.isnan(value):
             if not value > 0:
                 raise ValueError(f"explain_norm must be > 0, not {value}")

@@ -144,12 +144,26 @@ def test_fault_memory_survives_a_killed_supervisor(diesel_bank, tmp_path, monkey
         graph.start_node("fdi_supervisor")  # as a respawning launcher does
         w.spin_until(lambda: faults(w).get("leak_ic_engine"), 30.0, "the restarted memory")
         done["after"] = faults(w)["leak_ic_engine"]
+        from fdi_msgs.srv import ClearFaults
+
+        cli = w.node.create_client(ClearFaults, "/fdi/clear_faults")
+        done["clear_bad"] = _call(w, cli, ClearFaults.Request(faults=["no_such"]), "clear")
+        done["clear"] = _call(w, cli, ClearFaults.Request(faults=[]), "clear all")
+        done["cleared"] = faults(w)["leak_ic_engine"]
 
     run, w = run_live(CONFIG, scenario=_scenario(tmp_path, faults=True, duration=9.0),
                       during=during, timeout_s=120)
     before, after = done["before"], done["after"]
     assert before.status == after.status == "CONFIRMED"
     assert after.occurrences == 1 and 6.0 < after.first_t_s < 7.0
+    assert not done["clear_bad"].success and "no_such" in done["clear_bad"].message
+    assert done["clear"].success and [f.fault for f in done["clear"].cleared] == [
+        "leak_ic_engine"]
+    assert done["clear"].cleared[0].status == "CLEARED"
+    # the leak is still open: after the clear it is cleared, or already found again
+    c = done["cleared"]
+    assert c.status == "CLEARED" or (c.status in ("PREFAILED", "CONFIRMED") and
+                                     c.occurrences >= 1), c
     assert (state / "diesel_faults.sqlite").is_file()
     # the snapshot bag of the confirmation, beside the database, readable offline
     from fdi_ros import bag

@@ -95,6 +95,20 @@ class BagWriter:
                    _ns(e.t))
 
 
+def write_snapshot(path: str | Path, records: Iterable[tuple[float, str, Any]]) -> str:
+    """A bag of core records ``(t, kind, record)``, kind one of "features", "residuals",
+    "diagnosis", "block", "fault" (the supervisor's ring buffer at a confirmation); returns
+    what was done, for the log (a failure is reported there, never raised: the supervisor
+    goes on)."""
+    try:
+        with BagWriter(path) as w:
+            for _t, kind, rec in list(records):
+                getattr(w, f"write_{kind}")(rec)
+            return f"snapshot bag {path}: {w.count} messages"
+    except (OSError, ValueError) as exc:
+        return f"snapshot bag {path} not written: {exc}"
+
+
 def _ns(t_s: float) -> int:
     return int(round(max(t_s, 0.0) * 1e9))
 

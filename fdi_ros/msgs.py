@@ -25,7 +25,8 @@ import numpy as np
 from fdi_ros.core.types import Diagnosis, FaultEvent, FeatureVector, ResidualVector, SampleBlock
 
 PACKAGE = "fdi_msgs"
-MESSAGES = ("SensorBlock", "Features", "Residuals", "Symptoms", "Diagnosis", "FaultEvent")
+MESSAGES = ("SensorBlock", "Features", "Residuals", "Symptoms", "Diagnosis", "FaultEvent",
+            "FaultRecord")
 
 # Topic -> message type of the graph. One table, used by nodes, recorder, replayer and bag tools.
 TOPICS: dict[str, str] = {
@@ -172,6 +173,12 @@ class MessageFactory:
             residuals=_f64(residuals, s), threshold_low=_f64(threshold_low, s),
             threshold_high=_f64(threshold_high, s), threshold_intense=_f64(threshold_intense, s))
 
+    def symptom_state(self, index: int, t: float, s: Any) -> Any:
+        """Symptoms message from a symptom stage's state record."""
+        return self.symptoms(index=index, t=t, **{f: getattr(s, f) for f in (
+            "valid", "status", "names", "levels", "residuals", "threshold_low",
+            "threshold_high", "threshold_intense")})
+
     def diagnosis(self, d: Diagnosis) -> Any:
         return self.cls("Diagnosis")(
             header=self.header(d.t), index=int(d.index), t_s=float(d.t), state=d.state,
@@ -237,3 +244,42 @@ def symptoms_dict(m: Any) -> dict:
     return {"index": int(m.index), "t": float(m.t_s), "valid": bool(m.valid),
             "status": m.status, "levels": dict(zip(m.names, (int(v) for v in m.levels))),
             "residuals": dict(zip(m.names, (float(v) for v in m.residuals)))}
+
+
+def fault_records(records: Any) -> list:
+    """Core fault-memory records -> fdi_msgs/FaultRecord (rclpy) messages."""
+    import json
+
+    from fdi_msgs.msg import FaultRecord
+
+    from fdi_ros.core.faultmemory import record_dict
+
+    return [FaultRecord(fault=r.fault, status=r.status, occurrences=r.occurrences,
+                        first_t_s=r.first_t_s, last_t_s=r.last_t_s,
+                        freeze_frame_json=json.dumps(record_dict(r)["freeze_frame"]))
+            for r in records]
+
+
+def diagnostic_array(entries: Any, t_s: float) -> Any:
+    """Core /diagnostics entries -> diagnostic_msgs/DiagnosticArray (rclpy), stamped in plant
+    time ``t_s``."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    arr = DiagnosticArray()
+    arr.header.stamp.sec, arr.header.stamp.nanosec = stamp_fields(max(t_s, 0.0))
+    arr.status = [DiagnosticStatus(level=bytes([e.level]), name=e.name, message=e.message,
+                                   hardware_id=e.hardware_id,
+                                   values=[KeyValue(key=k, value=v) for k, v in e.values])
+                  for e in entries]
+    return arr
+
+
+def raw_header_stamp(raw: bytes) -> float:
+    """Header stamp [s] of a serialized message whose first field is a std_msgs/Header (CDR:
+    4 bytes of encapsulation, then sec and nanosec), without deserialising the rest; NaN if
+    the bytes cannot hold one."""
+    if len(raw) < 12:
+        return math.nan
+    order = "little" if raw[1] & 1 else "big"
+    sec = int.from_bytes(raw[4:8], order, signed=True)
+    return sec + int.from_bytes(raw[8:12], order) * 1e-9

@@ -33,7 +33,7 @@ fi
 
 # 2. rosidl build of msg_defs/fdi_msgs into the venv prefix -----------------------------------
 h_msgs=$(hash_of "$ROOT"/msg_defs/fdi_msgs/CMakeLists.txt "$ROOT"/msg_defs/fdi_msgs/package.xml \
-         "$ROOT"/msg_defs/fdi_msgs/msg/*.msg)
+         "$ROOT"/msg_defs/fdi_msgs/msg/*.msg "$ROOT"/msg_defs/fdi_msgs/srv/*.srv)
 if ! stamp_ok msgs "$h_msgs"; then
   echo "[setup] building msg_defs/fdi_msgs with rosidl (cmake + make)"
   rm -rf "$BUILD/fdi_msgs"

@@ -11,6 +11,9 @@ import os
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
 os.environ.setdefault("MPLBACKEND", "Agg")
+# The supervisor's fault memory and snapshot bags: a directory of this session's own, so tests
+# never leave state in the checkout nor see faults a previous run confirmed.
+os.environ.setdefault("FDI_ROS_STATE_DIR", __import__("tempfile").mkdtemp(prefix="fdi_state_"))
 
 
 from pathlib import Path  # noqa: E402

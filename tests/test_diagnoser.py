@@ -106,3 +106,78 @@ def test_bad_config_clear_error(tmp_path: Path, text: str, msg: str):
     p.write_text(text)
     with pytest.raises(ValueError, match=msg):
         load_graph_config(p)
+
+
+def test_consistent_faults_oracle():
+    from fdi_ros.core.diagnoser import consistent_faults
+
+    table = {"leak": (-1, 0, 0), "egr": (2, -1, -1), "vent": (1, 0, 0), "restr": (0, -1, 1)}
+    assert consistent_faults((-1, 0, 0), table) == ["leak"]  # exact
+    assert consistent_faults((1, 0, 0), table) == ["vent"]  # exact beats signed
+    assert consistent_faults((2, 0, 0), table) == ["vent"]  # signed
+    # one extra symptom, none of opposite sign: still the leak, never egr (opposite s_1)
+    assert consistent_faults((-1, -1, 0), table) == ["leak"]
+    assert consistent_faults((-1, -1, 0), table, max_mismatch=0) == []
+    assert consistent_faults((0, 0, 0), table) == []
+    with pytest.raises(ValueError, match="symptoms"):
+        consistent_faults((1, 0), table)
+
+
+def test_no_isolation_by_elimination(tmp_path):
+    """The true fault's model is away: the least bad other hypothesis is never isolated; the
+    diagnosis is 'detected, not isolable' naming the table's candidate and its absent model."""
+    import yaml
+
+    from fdi_ros.core.graphconfig import load_graph_config
+
+    table = tmp_path / "fst.yaml"
+    table.write_text(yaml.safe_dump({"symptoms": ["s_1"], "tables": {"t": {"a": "-", "b": "+"}}}))
+    cfg_file = tmp_path / "config" / "g.yaml"
+    cfg_file.parent.mkdir()
+    cfg_file.write_text(CONFIG.replace("  t0_s: 0.5\n", "  t0_s: 0.2\n"))
+    cfg = load_graph_config(cfg_file)
+    diag = Diagnoser(cfg)
+    diag.table = {"a": (-1,), "b": (1,)}
+    diag.reference_id = "nominal"
+
+    class Sym:  # a symptom stage reporting s_1 = "-" from t = 1 s on
+        def update(self, rv):
+            from types import SimpleNamespace
+            lv = (-1,) if rv.t >= 1.0 else (0,)
+            return SimpleNamespace(valid=True, levels=lv, as_table_order=lambda: lv)
+
+    diag.symptom_gen = Sym()
+
+    def rv(mid, t, norm):
+        return ResidualVector(mid, 0, t, True, "", ("r",), ("1",), np.array([norm]), norm)
+
+    states = []
+    for k in range(30):
+        t = 0.1 * k
+        # b (inconsistent with "-") has the smallest residual, a's model is away
+        res = {"nominal": rv("nominal", t, 3.0), "b": rv("b", t, 0.5)}
+        d = diag.update(k, t, res).diagnosis
+        states.append(d.state)
+        assert d.isolated_faults == (), (t, d)
+    assert states[-1] == "detected" and d.candidate_faults == ("a",)
+    assert d.extra["not_isolable"] and d.extra["away"] == ("a",)
+
+
+def test_no_isolation_while_the_believed_model_is_away(tmp_path):
+    """Without a symptom stage (the turbofan's case): while the nominal model is away (an
+    external deactivate), the other hypotheses never compete among themselves."""
+    cfg_file = tmp_path / "config" / "g.yaml"
+    cfg_file.parent.mkdir()
+    cfg_file.write_text(CONFIG)
+    diag = Diagnoser(load_graph_config(cfg_file))
+
+    def rv(mid, t, norm):
+        return ResidualVector(mid, 0, t, True, "", ("r",), ("1",), np.array([norm]), norm)
+
+    for k in range(40):
+        t = 0.1 * k
+        d = diag.update(k, t, {"a": rv("a", t, 0.1), "b": rv("b", t, 2.0)}).diagnosis
+        assert d.state == "not_valid" and d.isolated_faults == ()
+    d = diag.update(40, 4.0, {"nominal": rv("nominal", 4.0, 0.0), "a": rv("a", 4.0, 1.0),
+                              "b": rv("b", 4.0, 1.0)}).diagnosis
+    assert d.state == "no_fault"

@@ -142,10 +142,10 @@ def test_frozen_model_reported_silent_then_back(live):
         for st in arr.status:
             if st.name == f"fdi_supervisor: model {FROZEN}":
                 msgs.append(st.message)
-    silent = [i for i, m in enumerate(msgs) if m.startswith("silent")]
+    silent = [i for i, m in enumerate(msgs) if m.startswith("stale")]
     assert silent, f"never reported silent: {sorted(set(msgs))}"
     # after SIGCONT it answers again and is reported healthy (it goes off line at isolation)
-    assert any(not m.startswith("silent") for m in msgs[silent[-1] + 1:]), msgs[-5:]
+    assert any(not m.startswith("stale") for m in msgs[silent[-1] + 1:]), msgs[-5:]
     assert run.isolated_faults == ("leak_ic_engine",), lines
 
 
@@ -202,3 +202,21 @@ def test_model_node_that_cannot_load_its_model_is_reported(diesel_bank, tmp_path
     finally:
         graph.stop()
         w.close()
+
+
+def test_replay_at_rate_4_same_isolation_or_overload_reported(live):
+    """A rate the machine holds gives the live run's isolation to the segment; one it cannot
+    hold is reported as overload on /diagnostics (skipped segments not valid), and never
+    turns into another diagnosis."""
+    run, _, bag_dir, _, _ = live
+    rep, w = run_live(CONFIG, replay=bag_dir, realtime_factor=4.0, timeout_s=150)
+    pipe = [st for _, arr in w.seen.diagnostics for st in arr.status
+            if st.name == "fdi_supervisor: pipeline"]
+    overload = [st for st in pipe if "overload" in st.message]
+    assert set(rep.isolated_faults) <= {"leak_ic_engine"}, rep.isolations
+    if rep.isolated_faults and not overload:
+        assert abs(rep.isolation_t - run.isolation_t) <= SEGMENT_S + 1e-9
+    else:
+        assert overload, [st.message for st in pipe][-3:]
+        kv = {v.key: v.value for v in overload[-1].values}
+        assert int(kv["skipped_segments"]) > 0 and float(kv["lag_s"]) >= 0.0

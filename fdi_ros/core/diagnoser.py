@@ -10,7 +10,7 @@ replayed through the graph and the same bag diagnosed offline give the same answ
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -28,6 +28,35 @@ class Step:
     switched: bool  # the set of on-line models changed at this step
     added: tuple[str, ...] = ()
     removed: tuple[str, ...] = ()
+
+
+def consistent_faults(observed: Sequence[int], table: Mapping[str, Sequence[int]], *,
+                      max_mismatch: int = 1) -> list[str]:
+    """Faults of a fault-symptom table that the observed symptom levels do not contradict.
+
+    Exact matches first, then matches in sign (``+`` == ``++``); when there is neither, the
+    faults whose signature has no symptom of the opposite sign to an observed one and differs
+    in at most ``max_mismatch`` symptoms (one missing or extra). No symptom -> no candidate.
+    A fault outside this list cannot explain the residuals, however small its model's residual.
+    """
+    obs = [int(v) for v in observed]
+    if not any(obs):
+        return []
+    exact, signed, near = [], [], []
+    for fault, sig in table.items():
+        sig = [int(v) for v in sig]
+        if len(sig) != len(obs):
+            raise ValueError(f"signature of {fault} has {len(sig)} symptoms, observed "
+                             f"{len(obs)}")
+        signs = [(a > 0) - (a < 0) for a in sig], [(b > 0) - (b < 0) for b in obs]
+        if sig == obs:
+            exact.append(fault)
+        elif signs[0] == signs[1]:
+            signed.append(fault)
+        elif all(a * b >= 0 for a, b in zip(*signs)) and \
+                sum(a != b for a, b in zip(*signs)) <= max_mismatch:
+            near.append(fault)
+    return exact or signed or near
 
 
 def _make_symptom_stage(cfg: GraphConfig) -> tuple[Any, Any, str]:
@@ -67,6 +96,9 @@ class Diagnoser:
                                            stale_s=cfg.stale_s)
         self.symptom_gen, self.table, self.reference_id = _make_symptom_stage(cfg)
         self.detection_time = math.nan
+        sym = cfg.symptoms or {}
+        self.max_mismatch = int(sym.get("max_mismatch", 1))
+        self.explain_norm = float(sym.get("explain_norm", math.inf))
 
     @property
     def models_online(self) -> tuple[str, ...]:
@@ -90,17 +122,22 @@ class Diagnoser:
         before = self.models_online
         candidates: tuple[str, ...] = ()
         feed: dict[str, ResidualVector] = dict(residuals)
+        not_isolable = False
         if self.symptom_gen is not None:
             ref = residuals.get(self.reference_id)
             if symptoms is None and ref is not None:
                 symptoms = self.symptoms_of(ref)
-            if ref is None and not self.supervisor.isolated:
-                feed = {}  # without the reference model nothing can be said at this step
+            if (ref is None or not ref.valid) and not self.supervisor.isolated:
+                # Without valid reference residuals nothing can be said at this step: the
+                # hypotheses never compete without the reference model (e.g. while it is away
+                # or restarting after an external lifecycle change).
+                feed = {}
             active = symptoms is not None and symptoms.valid and any(symptoms.levels)
             if active and self.table is not None:
-                from fdi_ros.core.fst import isolate
-
-                candidates = tuple(isolate(symptoms.by_name(), self.table))
+                cols = getattr(self.table, "columns", None)
+                observed = symptoms.in_order(cols) if cols else tuple(symptoms.levels)
+                candidates = tuple(consistent_faults(observed, self.table,
+                                                     max_mismatch=self.max_mismatch))
             if not self.supervisor.isolated:
                 if not active:
                     # No symptom: the reference model explains the data by definition; the
@@ -108,11 +145,21 @@ class Diagnoser:
                     # isolates).
                     if ref is not None and ref.valid:
                         feed[self.reference_id] = replace(ref, norm=0.0)
-                elif candidates:
-                    # The fault-symptom table narrows the hypotheses that may compete.
+                elif self.table is not None:
+                    # Only a hypothesis that explains the residuals may be isolated: its fault
+                    # consistent with the fault-symptom table and its own residual within
+                    # ``explain_norm``; never the least bad of the rest (no elimination).
                     keep = {m.id for m in self.supervisor.bank
                             if not m.faults or m.fault_types & set(candidates)}
-                    feed = {k: v for k, v in feed.items() if k in keep}
+                    feed = {k: v for k, v in feed.items() if k in keep and (
+                        k == self.reference_id or not v.norm > self.explain_norm)}
+                    not_isolable = not any(k != self.reference_id and v.valid
+                                           for k, v in feed.items())
+        fm = feed.get(self.supervisor.fault_model)
+        if fm is None or not fm.valid:
+            # The model believed to match the plant (nominal at start) is the baseline of the
+            # comparison: without it a change of I* would be isolation by elimination.
+            feed = {}
         d = self.supervisor.update(t, feed)
         if symptoms is not None and symptoms.valid and any(symptoms.levels) \
                 and math.isnan(self.detection_time):
@@ -125,11 +172,21 @@ class Diagnoser:
         if symptoms is not None and not symptoms.valid and state == "no_fault":
             state = "not_valid"
         if symptoms is not None and symptoms.valid and any(symptoms.levels) \
-                and state == "no_fault":
+                and state in ("no_fault", "not_valid"):
             state = "detected"
+        extra = dict(d.extra)
+        if not_isolable and state == "detected":
+            # "detected, not isolable with the models on line": name the table's candidates,
+            # those whose models are away (off line, dead, stale) included
+            extra["not_isolable"] = True
+            online = self.supervisor.models_online
+            extra["away"] = tuple(m.id for m in self.supervisor.bank
+                                  if m.id in online and m.fault_types & set(candidates)
+                                  and (m.id not in residuals or not residuals[m.id].valid))
         d = replace(d, index=int(index), state=state,
                     candidate_faults=candidates or d.candidate_faults,
-                    models_online=self.models_online, detection_time=self.detection_time)
+                    models_online=self.models_online, detection_time=self.detection_time,
+                    extra=extra)
         after = self.models_online
         added = tuple(m for m in after if m not in before)
         removed = tuple(m for m in before if m not in after)

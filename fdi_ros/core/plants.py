@@ -65,6 +65,20 @@ def make_preprocessor(plant: str, **kwargs: Any) -> Preprocessor:
     return _PREPROCESSORS[plant](**kwargs)
 
 
+def fault_rules(plant: str) -> tuple[tuple[str, ...], Callable[[FaultEvent], None]]:
+    """The fault ids (or types) ``plant`` knows and its check of one event (ValueError with
+    the reason on a unit or size it cannot apply), for run-time injection requests."""
+    _ensure(plant)
+    if plant == "diesel":
+        from fdi_ros.plants.diesel.plant import FAULT_IDS, _FaultSchedule
+
+        return tuple(FAULT_IDS), lambda ev: _FaultSchedule().add(ev)
+    from fdi_ros.plants.turbofan.live import _event_units
+    from fdi_ros.plants.turbofan.plant import FAULT_SIZES
+
+    return tuple(FAULT_SIZES), lambda ev: (_event_units(ev), None)[1]
+
+
 def _ensure(plant: str) -> None:
     if plant in _RUNNERS:
         return

@@ -246,3 +246,51 @@ def test_realtime_factor_raised_live_applies_from_then_on(plant):
     print(f"plant time per wall second after the change: {slope:.2f} (plant ran "
           f"{elapsed_plant:.1f} s before it)")
     assert 3.0 < slope < 5.0, slope
+
+
+@pytest.mark.graph
+def test_every_node_describes_its_own_parameters(tmp_path):
+    """Preprocessor, residual, recorder and replayer (started from lib/fdi_ros as `ros2 run`
+    does): each parameter described under its own name with the type of its default; the
+    replayer's rate changes live, a negative one is refused."""
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import DescribeParameters, SetParameters
+
+    from fdi_ros.nodes import preprocessor_node, recorder_node, replayer_node, residual_node
+
+    types = {float: ParameterType.PARAMETER_DOUBLE, int: ParameterType.PARAMETER_INTEGER,
+             str: ParameterType.PARAMETER_STRING, bool: ParameterType.PARAMETER_BOOL,
+             list: ParameterType.PARAMETER_STRING_ARRAY}
+    bag = ROOT / "bags" / "diesel_leak_5mm_features"
+    nodes = {
+        "fdi_preprocessor": ("preprocessor_node", preprocessor_node.PARAMS, []),
+        "fdi_model_x": ("residual_node", residual_node.PARAMS, []),
+        "fdi_recorder": ("recorder_node", recorder_node.PARAMS,
+                         ["-p", f"bag:={tmp_path / 'bag'}"]),
+        "fdi_replayer": ("replayer_node", replayer_node.PARAMS,
+                         ["-p", f"bag:={bag}", "-p", "topics:=['/fdi/features']"]),
+    }
+    ros = RosHarness("fdi_test_params")
+    procs = [spawn([str(executable(exe)), "--ros-args", "-r", f"__node:={name}", *args])
+             for name, (exe, _, args) in nodes.items()]
+    try:
+        for name, (_, params, _) in nodes.items():
+            cli = ros.node.create_client(DescribeParameters, f"/{name}/describe_parameters")
+            names = [p.name for p in params]
+            res = ros.call(cli, DescribeParameters.Request(names=names), 30.0,
+                           f"{name} describe_parameters")
+            assert [d.name for d in res.descriptors] == names
+            for p, d in zip(params, res.descriptors):
+                assert d.type == types[type(p.default)], (name, p.name, d.type)
+                assert d.description and d.read_only == p.read_only, (name, p.name)
+        setp = ros.node.create_client(SetParameters, "/fdi_replayer/set_parameters")
+        for value, ok in ((4.0, True), (-2.0, False)):
+            req = SetParameters.Request(parameters=[Parameter(name="rate", value=ParameterValue(
+                type=ParameterType.PARAMETER_DOUBLE, double_value=value))])
+            r = ros.call(setp, req, 20.0, f"replayer rate {value}").results[0]
+            assert r.successful == ok, r.reason
+        assert all(p.poll() is None for p in procs)
+    finally:
+        for p in procs:
+            stop(p)
+        ros.close()

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from fdi_ros.core.faultcheck import FaultRejected, FaultRequest, check_fault_request, describe
+from fdi_ros.core.faultcheck import FaultRejected, check_fault_request, describe
 from fdi_ros.core.pacing import Pacer
 from fdi_ros.core.plants import fault_rules
 
@@ -20,47 +20,47 @@ def diesel():
 
 
 @pytest.mark.parametrize("req, words", [
-    (FaultRequest(0.0, "no_such_fault", 5.0, "mm"), "unknown fault"),
-    (FaultRequest(0.0, "leak_ic_engine", -5.0, "mm"), ">= 0"),
-    (FaultRequest(0.0, "leak_ic_engine", math.nan, "mm"), "finite"),
-    (FaultRequest(0.0, "leak_ic_engine", math.inf, "mm"), "finite"),
-    (FaultRequest(0.0, "leak_ic_engine", 5.0, "mm", "zigzag"), "unknown profile"),
-    (FaultRequest(0.0, "leak_ic_engine", 5.0, "mm", "ramp", 0.0), "ramp_s > 0"),
-    (FaultRequest(0.0, "leak_ic_engine", 5.0, "mm", "ramp", -1.0), "ramp_s must be >= 0"),
-    (FaultRequest(math.nan, "leak_ic_engine", 5.0, "mm"), "t_s must be finite"),
-    (FaultRequest(1.0, "leak_ic_engine", 5.0, "mm"), "in the past"),
-    (FaultRequest(0.0, "leak_ic_engine", 500.0, "mm"), "outside"),  # the plant's own limit
-    (FaultRequest(0.0, "leak_ic_engine", 5.0, "bar"), "sized in"),  # the plant's own unit
-    (FaultRequest(0.0, "leak_ic_engine", "five", "mm"), "must be a number"),  # type: ignore
-    (FaultRequest(0.0, 42, 5.0, "mm"), "must be a string"),  # type: ignore[arg-type]
+    ((0.0, "no_such_fault", 5.0, "mm"), "unknown fault"),
+    ((0.0, "leak_ic_engine", -5.0, "mm"), ">= 0"),
+    ((0.0, "leak_ic_engine", math.nan, "mm"), "finite"),
+    ((0.0, "leak_ic_engine", math.inf, "mm"), "finite"),
+    ((0.0, "leak_ic_engine", 5.0, "mm", "zigzag"), "unknown profile"),
+    ((0.0, "leak_ic_engine", 5.0, "mm", "ramp", 0.0), "ramp_s > 0"),
+    ((0.0, "leak_ic_engine", 5.0, "mm", "ramp", -1.0), "ramp_s must be >= 0"),
+    ((math.nan, "leak_ic_engine", 5.0, "mm"), "t_s must be finite"),
+    ((1.0, "leak_ic_engine", 5.0, "mm"), "in the past"),
+    ((0.0, "leak_ic_engine", 500.0, "mm"), "outside"),  # the plant's own limit
+    ((0.0, "leak_ic_engine", 5.0, "bar"), "sized in"),  # the plant's own unit
+    ((0.0, "leak_ic_engine", "five", "mm"), "must be a number"),  # type: ignore
+    ((0.0, 42, 5.0, "mm"), "must be a string"),  # type: ignore[arg-type]
 ])
 def test_malformed_requests_refused_with_reason(diesel, req, words):
     with pytest.raises(FaultRejected) as exc:
-        check_fault_request(req, now=2.0, **diesel)
+        check_fault_request(*req, now=2.0, **diesel)
     assert words in str(exc.value)
 
 
 def test_valid_requests_become_events(diesel):
-    ev = check_fault_request(FaultRequest(0.0, "leak_ic_engine", 5.0, "mm"), now=2.5, **diesel)
+    ev = check_fault_request(0.0, "leak_ic_engine", 5.0, "mm", now=2.5, **diesel)
     assert (ev.t, ev.fault, ev.size, ev.profile, ev.active) == (2.5, "leak_ic_engine", 5.0,
                                                                  "step", True)
-    ev = check_fault_request(FaultRequest(7.0, "egr_leaky", 2.0, "mm", "ramp", 1.5), now=2.5,
+    ev = check_fault_request(7.0, "egr_leaky", 2.0, "mm", "ramp", 1.5, now=2.5,
                              **diesel)
     assert ev.t == 7.0 and ev.profile == "ramp" and ev.ramp_s == 1.5
     assert "ramp over 1.5 s" in describe(ev)
-    clear = check_fault_request(FaultRequest(-1.0, ""), now=3.0, **diesel)
+    clear = check_fault_request(-1.0, "", now=3.0, **diesel)
     assert clear.fault == "" and "cleared" in describe(clear)
-    off = check_fault_request(FaultRequest(0.0, "egr_leaky", 0.0, "mm", active=False), now=1.0,
+    off = check_fault_request(0.0, "egr_leaky", 0.0, "mm", active=False, now=1.0,
                               **diesel)
     assert not off.active and "removed" in describe(off)
 
 
 def test_fault_types_admit_sized_ids():
     faults, check = fault_rules("turbofan")
-    assert check_fault_request(FaultRequest(0.0, "hub_small"), now=0.0, faults=faults,
+    assert check_fault_request(0.0, "hub_small", now=0.0, faults=faults,
                                plant_check=check).fault == "hub_small"
     with pytest.raises(FaultRejected, match="unknown fault"):
-        check_fault_request(FaultRequest(0.0, "hub_huge"), now=0.0, faults=faults,
+        check_fault_request(0.0, "hub_huge", now=0.0, faults=faults,
                             plant_check=check)
 
 

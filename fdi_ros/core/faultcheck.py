@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from typing import Any
 
 from fdi_ros.core.supervisor import fault_type
 from fdi_ros.core.types import FaultEvent
@@ -21,22 +21,6 @@ PROFILES = ("step", "ramp")
 
 class FaultRejected(ValueError):
     """A fault request the plant cannot apply; ``str(exc)`` is the reason for the user."""
-
-
-@dataclass(frozen=True)
-class FaultRequest:
-    """The fields of a ``fdi_msgs/FaultEvent`` as received, not yet trusted.
-
-    ``t`` <= 0 means "now"; ``profile`` "" means "step"; ``fault`` "" clears every fault.
-    """
-
-    t: float
-    fault: str
-    size: float = 0.0
-    size_unit: str = ""
-    profile: str = ""
-    ramp_s: float = 0.0
-    active: bool = True
 
 
 def _finite(name: str, value: object) -> float:
@@ -49,46 +33,50 @@ def _finite(name: str, value: object) -> float:
     return v
 
 
-def check_fault_request(req: FaultRequest, *, now: float, faults: Sequence[str] = (),
+def check_fault_request(t: Any, fault: Any, size: Any = 0.0, size_unit: Any = "",
+                        profile: Any = "", ramp_s: Any = 0.0, active: Any = True, *,
+                        now: float, faults: Sequence[str] = (),
                         plant_check: Callable[[FaultEvent], None] | None = None
                         ) -> FaultEvent:
-    """The event to schedule for ``req`` at plant time ``now``, or :class:`FaultRejected`.
+    """The event to schedule for a request at plant time ``now``, or :class:`FaultRejected`.
 
     Parameters
     ----------
-    req : the request's fields.
-    now : current plant time [s]; a request for ``t`` <= 0 takes effect now, one for a time
-        before ``now`` (but > 0) is refused (the plant cannot act in the past).
+    t, fault, size, size_unit, profile, ramp_s, active : the fields of a
+        ``fdi_msgs/FaultEvent`` as received, not yet trusted. ``t`` <= 0 means "now" (a time
+        before ``now`` but > 0 is refused: the plant cannot act in the past); ``profile`` ""
+        means "step"; ``fault`` "" clears every fault.
+    now : current plant time [s].
     faults : fault ids (or fault types: ``"hub"`` admits ``"hub_small"``) the plant knows;
         empty admits any name.
     plant_check : the plant's own check of a well-formed event (units, size limits); raises
         ValueError with the reason.
     """
-    fault = req.fault
     if not isinstance(fault, str):
         raise FaultRejected(f"fault must be a string, got {fault!r}")
     fault = fault.strip()
     if fault and faults and fault not in faults and fault_type(fault) not in faults:
         raise FaultRejected(f"unknown fault {fault!r}; known: {', '.join(faults)}")
-    t = _finite("t_s", req.t)
+    t = _finite("t_s", t)
     if t <= 0.0:
         t = now
     elif t < now:
         raise FaultRejected(f"t_s = {t:.3f} s lies in the past (plant time is {now:.3f} s); "
                             "t_s <= 0 means now")
-    profile = (req.profile or "step").strip()
+    requested = profile
+    profile = (str(profile) or "step").strip()
     if profile not in PROFILES:
-        raise FaultRejected(f"unknown profile {req.profile!r}; known: {', '.join(PROFILES)}")
-    ramp_s = _finite("ramp_s", req.ramp_s)
+        raise FaultRejected(f"unknown profile {requested!r}; known: {', '.join(PROFILES)}")
+    ramp_s = _finite("ramp_s", ramp_s)
     if ramp_s < 0.0:
         raise FaultRejected(f"ramp_s must be >= 0, got {ramp_s}")
     if profile == "ramp" and ramp_s <= 0.0:
         raise FaultRejected("profile 'ramp' needs ramp_s > 0")
-    size = _finite("size", req.size)
+    size = _finite("size", size)
     if size < 0.0:
         raise FaultRejected(f"size must be >= 0, got {size}")
-    event = FaultEvent(t=t, fault=fault, size=size, size_unit=str(req.size_unit).strip(),
-                       profile=profile, ramp_s=ramp_s, active=bool(req.active))
+    event = FaultEvent(t=t, fault=fault, size=size, size_unit=str(size_unit).strip(),
+                       profile=profile, ramp_s=ramp_s, active=bool(active))
     if plant_check is not None and fault:
         try:
             plant_check(event)

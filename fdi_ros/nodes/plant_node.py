@@ -25,7 +25,7 @@ from typing import Any
 from rclpy.node import Node
 
 from fdi_ros import msgs
-from fdi_ros.core.faultcheck import FaultRejected, FaultRequest, check_fault_request, describe
+from fdi_ros.core.faultcheck import FaultRejected, check_fault_request, describe
 from fdi_ros.core.pacing import Pacer
 from fdi_ros.nodes.common import (
     DATA_QOS,
@@ -108,9 +108,8 @@ class PlantNode(Node):
     def _request(self, m: Any) -> tuple[bool, str]:
         """Check and schedule one request; the outcome is logged and reported once."""
         try:
-            req = FaultRequest(t=m.t_s, fault=m.fault, size=m.size, size_unit=m.size_unit,
-                               profile=m.profile, ramp_s=m.ramp_s, active=m.active)
-            ev = check_fault_request(req, now=self.runner.t, faults=self._faults,
+            ev = check_fault_request(m.t_s, m.fault, m.size, m.size_unit, m.profile, m.ramp_s,
+                                     m.active, now=self.runner.t, faults=self._faults,
                                      plant_check=self._plant_check)
             self.runner.inject(ev)
         except (FaultRejected, ValueError) as exc:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
 import sys
 from types import ModuleType
@@ -52,16 +53,47 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# Set to 1 to get the traceback of an error instead of its one line.
+TRACEBACK_ENV = "FDI_ROS_TRACEBACK"
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception as one line: a YAML error (raised, or wrapped by a loader that named the
+    file) as its problem and place; whitespace collapsed."""
+    import yaml
+
+    text = str(exc) or type(exc).__name__
+    cause = exc if isinstance(exc, yaml.MarkedYAMLError) else (exc.__cause__ or exc.__context__)
+    if isinstance(cause, yaml.MarkedYAMLError):
+        mark = cause.problem_mark
+        name = f"{mark.name}, " if mark and not mark.name.startswith("<") else ""
+        where = f" ({name}line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        head = text.split("not valid YAML")[0] if cause is not exc else ""
+        text = f"{head}not valid YAML: {cause.problem or cause.context}{where}"
+    return " ".join(text.split())
+
+
 def main(argv: list[str] | None = None) -> int:
+    import yaml
+
     args = build_parser().parse_args(argv)
+    name = " ".join(w for w in (args.command, getattr(args, "subcommand", None)) if w)
     try:
         return int(args._run(args) or 0)
     except KeyboardInterrupt:
         return 130
-    except (FileNotFoundError, ValueError) as exc:
-        # Bad input is the user's to fix: say what is wrong, without a traceback.
-        print(f"fdi-ros: error: {exc}", file=sys.stderr)
+    except (OSError, ValueError, yaml.YAMLError) as exc:
+        # Bad input is the user's to fix: say what is wrong in one line, without a traceback.
+        if os.environ.get(TRACEBACK_ENV) == "1":
+            raise
+        print(f"fdi-ros {name}: error: {one_line(exc)}", file=sys.stderr)
         return 2
+    except Exception as exc:  # noqa: BLE001 - anything else: still one line, traceback on demand
+        if os.environ.get(TRACEBACK_ENV) == "1":
+            raise
+        print(f"fdi-ros {name}: unexpected {type(exc).__name__}: {one_line(exc)} "
+              f"({TRACEBACK_ENV}=1 shows the traceback)", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

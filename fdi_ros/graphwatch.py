@@ -64,7 +64,7 @@ class GraphWatcher:
         if watch_blocks:
             sub(SensorBlock, "/fdi/sensor_block",
                 lambda m: self.seen.blocks.append((now(), float(m.stamp_s[-1]))), DATA_QOS)
-        self._inject = self.node.create_publisher(FaultEvent, "/fdi/fault_inject", LATCHED_QOS)
+        self._inject_cli: Any = None
         self._fac = msgs.MessageFactory("rclpy")
 
     def spin_until(self, cond: Callable[[], Any], timeout: float, what: str,
@@ -79,8 +79,22 @@ class GraphWatcher:
             self.executor.spin_once(timeout_sec=0.05)
         raise TimeoutError(f"timed out after {timeout:.0f} s waiting for {what}")
 
-    def inject(self, event: Any) -> None:
-        self._inject.publish(self._fac.fault_event(event))
+    def inject(self, event: Any, timeout: float = 10.0) -> tuple[bool, str]:
+        """Inject a fault through the plant's /fdi/inject_fault service: (accepted, reason).
+
+        A service call is answered: a topic message sent before the plant's (volatile) reader
+        has matched this publisher would be lost."""
+        from fdi_msgs.srv import InjectFault
+
+        if self._inject_cli is None:
+            self._inject_cli = self.node.create_client(InjectFault, "/fdi/inject_fault")
+        if not self._inject_cli.wait_for_service(timeout_sec=timeout):
+            raise TimeoutError(f"/fdi/inject_fault not available after {timeout:.0f} s")
+        fut = self._inject_cli.call_async(InjectFault.Request(
+            event=self._fac.fault_event(event)))
+        self.spin_until(fut.done, timeout, "the answer of /fdi/inject_fault")
+        res = fut.result()
+        return bool(res.accepted), str(res.reason)
 
     def lifecycle_state(self, node_name: str, timeout: float = 10.0) -> str:
         """Label of a lifecycle node's current state, via its get_state service."""

@@ -34,6 +34,8 @@ NODE_KINDS = {
     "fdi_recorder": "recorder_node",
     "fdi_replayer": "replayer_node",
 }
+# section of the graph configuration with the parameters common to every bank model node
+MODELS_SECTION = "fdi_models"
 
 
 @dataclass
@@ -90,12 +92,14 @@ class Graph:
         else:
             sections.pop("fdi_recorder", None)
         self.nodes: list[NodeProcess] = []
-        # bank models first: the supervisor finds their services when it starts
+        # bank models first: the supervisor finds their services when it starts; each gets the
+        # common section `fdi_models` (e.g. use_sim_time) and its own model
+        common = dict(self.cfg.node_params.get(MODELS_SECTION) or {})
         for e in self.cfg.bank:
             spec = self.cfg.resolve_spec(e.model)
             if not isinstance(spec, str):
                 spec = yaml.safe_dump(spec, default_flow_style=True, width=10_000).strip()
-            self._add(e.node_name, "residual_node", {"model_id": e.id, "model": spec})
+            self._add(e.node_name, "residual_node", {**common, "model_id": e.id, "model": spec})
         order = ["fdi_recorder", "fdi_supervisor", "fdi_preprocessor", "fdi_plant",
                  "fdi_replayer"]
         for name in order:

@@ -4,6 +4,8 @@
 #   .venv (as ROS prefix)    the rosidl build of msg_defs/fdi_msgs installed into the venv root,
 #                            which the ROS wheels already use as their prefix ($VENV/lib, /share)
 #   fdi_ros                  installed editable into the venv (console script .venv/bin/fdi-ros)
+#   .venv (as ament prefix)  fdi_ros laid out as colcon would (index marker, share/fdi_ros,
+#                            lib/fdi_ros/<node>) and .venv/setup.sh, so ros2 run/launch find it
 # Idempotent: each step is skipped when its stamp matches the hash of its inputs, so a second
 # run does no network work and takes about a second.
 set -euo pipefail
@@ -55,6 +57,16 @@ if ! stamp_ok pkg "$h_pkg"; then
   echo "[setup] installing fdi_ros (editable)"
   "$VENV/bin/python" -m pip install -q --disable-pip-version-check --no-deps --no-build-isolation \
       -e "$ROOT"
+  rm -f "$BUILD/ament.stamp"
   stamp_set pkg "$h_pkg"
+fi
+
+# 4. the venv as the ament prefix of fdi_ros (what `colcon build` would install) ---------------
+h_ament=$(hash_of "$ROOT/scripts/ament_prefix.py" "$ROOT/setup.py" "$ROOT/package.xml" \
+          "$ROOT/resource/fdi_ros")
+if ! stamp_ok ament "$h_ament" || [ ! -f "$VENV/share/ament_index/resource_index/packages/fdi_ros" ]
+then
+  "$VENV/bin/python" "$ROOT/scripts/ament_prefix.py" "$VENV"
+  stamp_set ament "$h_ament"
 fi
 echo "[setup] ready in $(( $(date +%s) - t0 )) s: $VENV/bin/fdi-ros"

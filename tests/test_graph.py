@@ -39,7 +39,7 @@ def live(diesel_bank, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("live")
     out = tmp / "bag"
     # The demo scenario without its scheduled fault: the leak is injected at run time instead,
-    # on /fdi/fault_inject from this process.
+    # through the plant's /fdi/inject_fault service from this process.
     sc = yaml.safe_load(SCENARIO.read_text())
     sc.pop("faults")
     scenario = tmp / "no_fault.yaml"
@@ -51,8 +51,9 @@ def live(diesel_bank, tmp_path_factory):
         if d is None:
             return
         if "inject" not in done and d.t >= 1.0:
-            w.inject(FaultEvent(t=ONSET, fault="leak_ic_engine", size=5.0, size_unit="mm"))
             done["inject"] = d.t
+            done["answer"] = w.inject(FaultEvent(t=ONSET, fault="leak_ic_engine", size=5.0,
+                                                 size_unit="mm"))
         node = graph.node(graph.cfg.entry(FROZEN).node_name)
         if "frozen" not in done and d.t >= 2.5:
             os.kill(node.proc.pid, signal.SIGSTOP)  # alive, in the graph, but not answering

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 COMMAND = ("discrepancy",)
@@ -157,11 +158,16 @@ def run(args: argparse.Namespace) -> int:
     if missing:
         raise ValueError(f"{args.measured}: the {args.plant} model needs signals {missing}; "
                          f"the data has {sorted(data.signals)} (a mapping file renames columns)")
+    skipped = data.skipped(list(dict.fromkeys(baseline.inputs + baseline.channels)))
+    if skipped["samples"]:
+        per = ", ".join(f"{k} in {n}" for n, k in skipped["by_signal"].items())
+        print(f"fdi-ros discrepancy: skipped {skipped['samples']} of {skipped['of']} samples "
+              f"with missing or non-finite values ({per})", file=sys.stderr, flush=True)
     say(f"analysing {data.n_samples} samples ({data.t[-1] - data.t[0]:.1f} s) of "
         f"{data.source}")
     res, ext = discover(data, baseline, config=cfg, progress=say if not args.quiet else None)
     doc = res.to_dict()
-    doc.update({"plant": args.plant, "measured": str(args.measured),
+    doc.update({"plant": args.plant, "measured": str(args.measured), "skipped": skipped,
                 "baseline": baseline.to_dict()})
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import sys
 from pathlib import Path
 
 COMMAND = ("identify",)
@@ -64,6 +65,12 @@ def _blocks_from_csv(path: Path, mapping):
     if m.alpha is None:
         raise ValueError(f"{path}: the diesel features need a crank-angle column 'alpha'")
     names = tuple(k for k in m.signals if k in ("n", "p2", "T2", "maf", "p_amb", "T_amb"))
+    skipped = m.skipped(names)
+    if skipped["samples"]:
+        per = ", ".join(f"{k} in {n}" for n, k in skipped["by_signal"].items())
+        print(f"fdi-ros identify: {path}: {skipped['samples']} of {skipped['of']} samples with "
+              f"missing or non-finite values ({per}); the segments holding them are skipped",
+              file=sys.stderr, flush=True)
     vals = np.vstack([m.signals[k] for k in names])
     return [SampleBlock(plant="diesel", index=0, t=m.t, alpha=m.alpha, channels=names,
                         units=tuple(m.units[k] for k in names), values=vals)]

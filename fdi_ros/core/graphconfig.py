@@ -86,9 +86,13 @@ def load_graph_config(path: str | Path) -> GraphConfig:
     if not isinstance(doc, dict) or "fdi_graph" not in doc:
         raise ValueError(f"{p}: no 'fdi_graph' section")
     g = doc["fdi_graph"]
+    if not isinstance(g, dict):
+        raise ValueError(f"{p}: 'fdi_graph' must be a mapping")
     unknown = set(g) - KNOWN_KEYS
     if unknown:
         raise ValueError(f"{p}: unknown key(s) in fdi_graph: {sorted(unknown)}")
+    if not isinstance(g.get("bank") or [], list):
+        raise ValueError(f"{p}: 'bank' must be a list of models")
     bank = []
     for i, e in enumerate(g.get("bank") or []):
         if not isinstance(e, dict) or "id" not in e or "model" not in e:

@@ -103,6 +103,13 @@ class Measured:
             ok &= np.isfinite(self[name])
         return ok
 
+    def skipped(self, names: tuple[str, ...] | list[str]) -> dict:
+        """What an analysis of ``names`` leaves out: samples where any of them is missing or
+        non-finite, in all and per signal (``{"samples", "of", "by_signal"}``)."""
+        by_signal = {n: int(np.sum(~np.isfinite(self[n]))) for n in names}
+        return {"samples": int(np.sum(~self.valid(names))), "of": self.n_samples,
+                "by_signal": {n: k for n, k in by_signal.items() if k}}
+
     def window(self, t0: float, t1: float) -> Measured:
         """The samples with ``t0 <= t < t1`` as a new record."""
         sel = (self.t >= t0) & (self.t < t1)

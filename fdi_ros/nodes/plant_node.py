@@ -1,97 +1,168 @@
 """Plant simulator node: publishes sensor blocks at the plant's pace and fault ground truth.
 
-The plant (a wing of :mod:`fdi_ros.plants`), its scenario (inputs over time, scheduled faults)
-and the block size come from :func:`fdi_ros.plants.make_runner`. A wall-clock timer advances
-plant time by ``realtime_factor`` x the elapsed wall time (0 = as fast as the graph takes it);
-every block is published on ``/fdi/sensor_block`` and plant time on ``/clock`` (so other nodes
-can run on sim time). Faults are injected at run time on ``/fdi/fault_inject`` (``t_s`` <= 0
-means "now")
-and by the scenario; each fault that takes effect is published on ``/fdi/fault_truth``
-(transient-local, so late joiners and the recorder see it).
+The plant (a wing of :mod:`fdi_ros.plants`), its scenario (inputs over time, scheduled
+faults) and the block size come from :func:`fdi_ros.plants.make_runner`. A wall-clock timer advances plant time
+by ``realtime_factor`` x the elapsed wall time (0 = as fast as the graph takes it; a live change
+applies from that moment on, see :class:`fdi_ros.core.pacing.Pacer`); every block is published
+on ``/fdi/sensor_block`` and plant time on ``/clock`` (the other nodes may run on it with
+``use_sim_time``; the plant itself keeps wall time). Every message is stamped in plant time.
 
-Parameters: ``plant``, ``scenario`` (YAML path), ``seed``, ``realtime_factor`` (1.0),
-``publish_clock`` (true), ``max_blocks_per_tick`` (bounds a catch-up burst),
-``min_subscribers`` (1: wait for the preprocessor before plant time starts),
-``start_delay_s`` (0: further wall seconds before plant time starts).
+Faults are injected at run time on ``/fdi/fault_inject`` (reliable, volatile: default and
+transient-local publishers both match) and through the service ``/fdi/inject_fault``
+(``fdi_msgs/srv/InjectFault``: accepted + reason); ``t_s`` <= 0 means "now". A request is
+checked first (:func:`fdi_ros.core.faultcheck.check_fault_request` against the plant's fault
+list and limits): a malformed one is refused with the reason (logged once, on ``/diagnostics``,
+in the service reply) and the plant runs on. Each fault that takes effect is published on
+``/fdi/fault_truth`` (transient-local, so late joiners and the recorder see it).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Any
 
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 
 from fdi_ros import msgs
-from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, run_node
+from fdi_ros.core.faultcheck import FaultRejected, check_fault_request, describe
+from fdi_ros.core.pacing import Pacer
+from fdi_ros.nodes.common import (
+    DATA_QOS,
+    LATCHED_QOS,
+    REQUEST_QOS,
+    Param,
+    declare_params,
+    run_node,
+)
+
+
+def _rate_check(v: float) -> str | None:
+    return None if math.isfinite(v) and v >= 0 else "must be finite and >= 0 (0 = no limit)"
+
+
+PARAMS = (
+    Param("plant", "", "plant id of the plant registry (fdi_ros.plants)", read_only=True),
+    Param("scenario", "", "scenario YAML (inputs over time, scheduled faults); '' = the plant's "
+          "default", read_only=True),
+    Param("seed", 0, "seed of the sensor noise (and plant variation)", read_only=True,
+          range=(0, 2**31 - 1)),
+    Param("realtime_factor", 1.0, "plant seconds per wall second; 0 = as fast as the graph "
+          "takes it; a change applies from that moment on", range=(0.0, 1000.0),
+          check=_rate_check),
+    Param("publish_clock", True, "publish plant time on /clock", read_only=True),
+    Param("max_blocks_per_tick", 50, "blocks published per 10 ms timer tick at most (bounds a "
+          "burst when the plant falls behind)", range=(1, 100_000)),
+    Param("min_subscribers", 1, "plant time starts once this many readers of /fdi/sensor_block "
+          "are matched (DDS discovery takes ~0.3-3 s; earlier blocks would be lost)",
+          range=(0, 1000)),
+    Param("start_delay_s", 0.0, "wall seconds to wait, once the readers are matched, before "
+          "plant time starts (time for a large bank to come on line)", read_only=True,
+          range=(0.0, 3600.0)),
+)
 
 
 class PlantNode(Node):
     def __init__(self) -> None:
         super().__init__("fdi_plant")
-        ro = ParameterDescriptor(read_only=True)
-        self.declare_parameter("plant", "", ro)
-        self.declare_parameter("scenario", "", ro)
-        self.declare_parameter("seed", 0, ro)
-        self.declare_parameter("realtime_factor", 1.0, ParameterDescriptor(
-            description="plant seconds per wall second; 0 = as fast as possible"))
-        self.declare_parameter("publish_clock", True, ro)
-        self.declare_parameter("max_blocks_per_tick", 50, ro)
-        self.declare_parameter("min_subscribers", 1, ParameterDescriptor(
-            description="plant time starts once this many readers of /fdi/sensor_block are "
-                        "matched (DDS discovery takes ~0.3-3 s; earlier blocks would be lost)"))
+        declare_params(self, PARAMS)
+        from diagnostic_msgs.msg import DiagnosticArray
         from fdi_msgs.msg import FaultEvent, SensorBlock
+        from fdi_msgs.srv import InjectFault
         from rosgraph_msgs.msg import Clock
 
-        from fdi_ros.plants import make_runner
+        from fdi_ros.plants import fault_rules, make_runner
 
         p = self.get_parameter
-        self.runner = make_runner(p("plant").value, p("scenario").value or None,
-                                  seed=int(p("seed").value))
+        plant = p("plant").value
+        self.runner = make_runner(plant, p("scenario").value or None, seed=int(p("seed").value))
+        self._faults, self._plant_check = fault_rules(plant)
         self._fac = msgs.MessageFactory("rclpy")
         self._pub = self.create_publisher(SensorBlock, "/fdi/sensor_block", DATA_QOS)
         self._truth = self.create_publisher(FaultEvent, "/fdi/fault_truth", LATCHED_QOS)
         self._clock_pub = (self.create_publisher(Clock, "/clock", 10)
-                       if p("publish_clock").value else None)
+                           if p("publish_clock").value else None)
         self._Clock = Clock
-        self.create_subscription(FaultEvent, "/fdi/fault_inject", self._on_inject, LATCHED_QOS)
-        self._wall0: float | None = None
-        self._t0 = self.runner.t
-        self._min_subs = int(p("min_subscribers").value)
-        self.declare_parameter("start_delay_s", 0.0, ParameterDescriptor(
-            description="wall seconds to wait, once the readers are matched, before plant time "
-                        "starts (time for a large bank to come on line under `fdi-ros launch`)"))
-        self._delay = float(p("start_delay_s").value)
+        self._diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._requests = {"accepted": 0, "rejected": 0, "last": "none", "ok": True}
+        self.create_subscription(FaultEvent, "/fdi/fault_inject", self._on_inject, REQUEST_QOS)
+        self.create_service(InjectFault, "/fdi/inject_fault", self._on_inject_service)
+        self._pacer = Pacer(float(p("realtime_factor").value))
+        self.add_post_set_parameters_callback(self._on_params_set)
         self._ready_at: float | None = None
         self._finished = False
         self.create_timer(0.01, self._tick)
+        self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(f"plant {self.runner.plant!r} ready, scenario "
                                f"{p('scenario').value or '(default)'}")
 
-    def _on_inject(self, m: Any) -> None:
-        ev = msgs.to_fault_event(m)
-        if ev.t <= 0.0:
-            ev = type(ev)(**{**ev.__dict__, "t": self.runner.t})
-        self.runner.inject(ev)
-        self.get_logger().info(f"fault injection accepted: {ev.fault} {ev.size} {ev.size_unit} "
-                               f"at t = {ev.t:.3f} s")
+    # -- parameters -----------------------------------------------------------------------------
+    def _on_params_set(self, params: list[Any]) -> None:
+        for q in params:
+            if q.name == "realtime_factor":
+                self._pacer.set_rate(float(q.value), time.monotonic(), self.runner.t)
+                self.get_logger().info(f"realtime_factor {q.value:g} from t = "
+                                       f"{self.runner.t:.3f} s")
 
+    # -- fault injection ------------------------------------------------------------------------
+    def _request(self, m: Any) -> tuple[bool, str]:
+        """Check and schedule one request; the outcome is logged and reported once."""
+        try:
+            ev = check_fault_request(m.t_s, m.fault, m.size, m.size_unit, m.profile, m.ramp_s,
+                                     m.active, now=self.runner.t, faults=self._faults,
+                                     plant_check=self._plant_check)
+            self.runner.inject(ev)
+        except (FaultRejected, ValueError) as exc:
+            reason = f"fault request {m.fault!r} refused: {exc}"
+            self._requests.update(rejected=self._requests["rejected"] + 1, last=reason, ok=False)
+            self.get_logger().error(reason)
+            self._publish_diagnostics()
+            return False, str(exc)
+        what = describe(ev)
+        self._requests.update(accepted=self._requests["accepted"] + 1,
+                              last=f"scheduled: {what}", ok=True)
+        self.get_logger().info(f"fault injection accepted: {what}")
+        self._publish_diagnostics()
+        return True, f"scheduled: {what}"
+
+    def _on_inject(self, m: Any) -> None:
+        self._request(m)
+
+    def _on_inject_service(self, request: Any, response: Any) -> Any:
+        response.accepted, response.reason = self._request(request.event)
+        return response
+
+    def _publish_diagnostics(self) -> None:
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+        r = self._requests
+        st = DiagnosticStatus(
+            level=DiagnosticStatus.OK if r["ok"] else DiagnosticStatus.WARN,
+            name=f"{self.get_name()}: fault injection", hardware_id=self.runner.plant,
+            message=str(r["last"]),
+            values=[KeyValue(key="plant_time_s", value=f"{self.runner.t:.3f}"),
+                    KeyValue(key="realtime_factor", value=f"{self._pacer.rate:g}"),
+                    KeyValue(key="accepted", value=str(r["accepted"])),
+                    KeyValue(key="rejected", value=str(r["rejected"]))])
+        arr = DiagnosticArray(status=[st])
+        arr.header.stamp.sec, arr.header.stamp.nanosec = msgs.stamp_fields(self.runner.t)
+        self._diag.publish(arr)
+
+    # -- plant time -----------------------------------------------------------------------------
     def _tick(self) -> None:
         if self._finished:
             return
-        if self._wall0 is None:
-            if self._pub.get_subscription_count() < self._min_subs:
+        now = time.monotonic()
+        if not self._pacer.started:
+            if self._pub.get_subscription_count() < int(
+                    self.get_parameter("min_subscribers").value):
                 return
             if self._ready_at is None:
-                self._ready_at = time.monotonic() + self._delay
-            if time.monotonic() < self._ready_at:
+                self._ready_at = now + float(self.get_parameter("start_delay_s").value)
+            if now < self._ready_at:
                 return
-        now = time.monotonic()
-        if self._wall0 is None:
-            self._wall0 = now
-        rtf = float(self.get_parameter("realtime_factor").value)
-        target = self._t0 + (now - self._wall0) * rtf if rtf > 0 else float("inf")
+            self._pacer.start(now, self.runner.t)
+        target = self._pacer.target(now)
         for _ in range(int(self.get_parameter("max_blocks_per_tick").value)):
             if self.runner.done:
                 self._finished = True
@@ -102,13 +173,11 @@ class PlantNode(Node):
             block = self.runner.next_block()
             for ev in self.runner.pop_truth():
                 self._truth.publish(self._fac.fault_event(ev))
-                self.get_logger().info(f"fault active: {ev.fault} {ev.size} {ev.size_unit} "
-                                       f"at t = {ev.t:.3f} s")
+                self.get_logger().info(f"fault active: {describe(ev)}")
             self._pub.publish(self._fac.sensor_block(block))
             if self._clock_pub is not None:
-                sec, nsec = msgs.stamp_fields(float(block.t[-1]))
                 c = self._Clock()
-                c.clock.sec, c.clock.nanosec = sec, nsec
+                c.clock.sec, c.clock.nanosec = msgs.stamp_fields(float(block.t[-1]))
                 self._clock_pub.publish(c)
 
 

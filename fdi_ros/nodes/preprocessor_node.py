@@ -11,17 +11,19 @@ from __future__ import annotations
 
 from typing import Any
 
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 
 from fdi_ros import msgs
-from fdi_ros.nodes.common import DATA_QOS, run_node
+from fdi_ros.nodes.common import DATA_QOS, Param, declare_params, run_node
+
+PARAMS = (Param("plant", "", "plant id of the plant registry: which "
+                "preprocessor turns sensor blocks into feature vectors", read_only=True),)
 
 
 class PreprocessorNode(Node):
     def __init__(self) -> None:
         super().__init__("fdi_preprocessor")
-        self.declare_parameter("plant", "", ParameterDescriptor(read_only=True))
+        declare_params(self, PARAMS)
         from fdi_msgs.msg import Features, SensorBlock
 
         from fdi_ros.plants import make_preprocessor

@@ -18,11 +18,19 @@ from rclpy.node import Node
 
 from fdi_ros import msgs
 from fdi_ros.bag import BagWriter
-from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, run_node
+from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, Param, declare_params, run_node
 
 # Known types we can record; topics carrying them are picked up wherever they appear.
 RECORDABLE = {**msgs.TOPICS, "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
               "/clock": "rosgraph_msgs/msg/Clock"}
+
+
+PARAMS = (
+    Param("bag", "", "output bag directory (rosbag2, MCAP); required", read_only=True),
+    Param("topics", [""], "extra topics to record besides the known ones", read_only=True),
+    Param("scan_period_s", 0.5, "period of the graph scan for new topics [s]", read_only=True,
+          range=(0.01, 60.0)),
+)
 
 
 def _msg_class(msgtype: str) -> Any:
@@ -35,9 +43,7 @@ def _msg_class(msgtype: str) -> Any:
 class RecorderNode(Node):
     def __init__(self) -> None:
         super().__init__("fdi_recorder")
-        self.declare_parameter("bag", "")
-        self.declare_parameter("topics", [""])
-        self.declare_parameter("scan_period_s", 0.5)
+        declare_params(self, PARAMS)
         path = self.get_parameter("bag").value
         if not path:
             raise ValueError("parameter 'bag' (output bag directory) is required")

@@ -3,9 +3,10 @@ driving ``/clock`` with the bag's time. Serialized messages are published as sto
 re-encoding). By default it replays the plant side (sensor blocks and fault ground truth), so
 preprocessor, residual generators and supervisor run again on recorded measurements.
 
-Parameters: ``bag`` (required), ``rate`` (1.0; 0 = as fast as the graph acknowledges),
-``topics`` (default: /fdi/sensor_block, /fdi/fault_truth), ``min_subscribers`` (1: readers of
-/fdi/sensor_block matched before the replay starts), ``start_delay_s``, ``publish_clock``.
+Parameters: ``bag`` (required), ``rate`` (1.0; 0 = as fast as the graph acknowledges; a live
+change applies from that moment on), ``topics`` (default: /fdi/sensor_block, /fdi/fault_truth),
+``min_subscribers`` (1: readers of /fdi/sensor_block matched before the replay starts),
+``start_delay_s``, ``publish_clock``.
 """
 
 from __future__ import annotations
@@ -13,24 +14,31 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 
 from fdi_ros import bag as bagio
-from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, run_node
+from fdi_ros.core.pacing import Pacer
+from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, Param, declare_params, run_node
 from fdi_ros.nodes.recorder_node import _msg_class
+
+PARAMS = (
+    Param("bag", "", "bag directory to replay (rosbag2, MCAP); required", read_only=True),
+    Param("rate", 1.0, "bag seconds per wall second; 0 = as fast as the readers acknowledge; "
+          "a change applies from that moment on", range=(0.0, 1000.0)),
+    Param("topics", ["/fdi/sensor_block", "/fdi/fault_truth"], "topics of the bag to publish",
+          read_only=True),
+    Param("start_delay_s", 0.0, "wall seconds before the replay starts", read_only=True,
+          range=(0.0, 3600.0)),
+    Param("min_subscribers", 1, "readers of /fdi/sensor_block matched before the replay starts",
+          read_only=True, range=(0, 1000)),
+    Param("publish_clock", True, "publish the bag's time on /clock", read_only=True),
+)
 
 
 class ReplayerNode(Node):
     def __init__(self) -> None:
         super().__init__("fdi_replayer")
-        ro = ParameterDescriptor(read_only=True)
-        self.declare_parameter("bag", "", ro)
-        self.declare_parameter("rate", 1.0, ro)
-        self.declare_parameter("topics", ["/fdi/sensor_block", "/fdi/fault_truth"], ro)
-        self.declare_parameter("start_delay_s", 0.0, ro)
-        self.declare_parameter("min_subscribers", 1, ro)
-        self.declare_parameter("publish_clock", True, ro)
+        declare_params(self, PARAMS)
         from rosgraph_msgs.msg import Clock
 
         path = self.get_parameter("bag").value
@@ -50,21 +58,27 @@ class ReplayerNode(Node):
         self._Clock = Clock
         self._it = bagio.read(path, list(self._pubs), raw=True)
         self._next: tuple | None = None
-        self._rate = float(self.get_parameter("rate").value)
+        self._pacer = Pacer(float(self.get_parameter("rate").value))
+        self._last_s = 0.0  # bag time of the last message published [s]
+        self.add_post_set_parameters_callback(self._on_params_set)
         self._start = time.monotonic() + float(self.get_parameter("start_delay_s").value)
         self._min_subs = int(self.get_parameter("min_subscribers").value)
-        self._t0_bag: int | None = None
-        self._wall0 = 0.0
         self.count = 0
         self.done = False
         self.create_timer(0.005, self._tick)
         self.get_logger().info(f"replaying {path} ({', '.join(self._pubs)}) at rate "
-                               f"{self._rate or 'max'}")
+                               f"{self._pacer.rate or 'max'}")
+
+    def _on_params_set(self, params: list[Any]) -> None:
+        for q in params:
+            if q.name == "rate":
+                self._pacer.set_rate(float(q.value), time.monotonic(), self._last_s)
+                self.get_logger().info(f"rate {q.value:g} from bag time {self._last_s:.3f} s")
 
     def _tick(self) -> None:
         if self.done or time.monotonic() < self._start:
             return
-        if self._t0_bag is None and any(p.get_subscription_count() < self._min_subs
+        if not self._pacer.started and any(p.get_subscription_count() < self._min_subs
                                         for t, p in self._pubs.items()
                                         if t == "/fdi/sensor_block"):
             return  # wait until the readers are matched (nothing published into the void)
@@ -76,11 +90,10 @@ class ReplayerNode(Node):
                     self.get_logger().info(f"replay finished: {self.count} messages")
                     return
             topic, _typ, t_ns, data = self._next
-            if self._t0_bag is None:
-                self._t0_bag, self._wall0 = t_ns, time.monotonic()
-            if self._rate > 0:
-                due = self._wall0 + (t_ns - self._t0_bag) * 1e-9 / self._rate
-                if time.monotonic() < due:
+            if not self._pacer.started:
+                self._pacer.start(time.monotonic(), t_ns * 1e-9)
+            if self._pacer.rate > 0:
+                if t_ns * 1e-9 > self._pacer.target(time.monotonic()):
                     return
             elif self.count % 20 == 19:
                 for p in self._pubs.values():  # max rate: stay within what readers acknowledge
@@ -91,6 +104,7 @@ class ReplayerNode(Node):
                 c.clock.sec, c.clock.nanosec = divmod(t_ns, 1_000_000_000)
                 self._clock_pub.publish(c)
             self.count += 1
+            self._last_s = t_ns * 1e-9
             self._next = None
 
 

@@ -20,23 +20,24 @@ from __future__ import annotations
 import traceback
 from typing import Any
 
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
 from fdi_ros import msgs
-from fdi_ros.nodes.common import DATA_QOS, run_node
+from fdi_ros.nodes.common import DATA_QOS, Param, declare_params, run_node
+
+# Read on configure: a change applies at the next configure (hence read-only while running).
+PARAMS = (
+    Param("model_id", "", "bank model id, e.g. 'nominal'", read_only=True),
+    Param("model", "", "model spec (YAML/JSON mapping) or model file path", read_only=True),
+    Param("features_topic", "/fdi/features", "feature vectors in", read_only=True),
+    Param("residuals_topic", "/fdi/residuals", "residuals out", read_only=True),
+)
 
 
 class ResidualNode(LifecycleNode):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("fdi_residual", **kwargs)
-        ro = ParameterDescriptor(read_only=True)
-        self.declare_parameter("model_id", "", ParameterDescriptor(
-            read_only=True, description="bank model id, e.g. 'nominal'"))
-        self.declare_parameter("model", "", ParameterDescriptor(
-            read_only=True, description="model spec (YAML/JSON string) or model file path"))
-        self.declare_parameter("features_topic", "/fdi/features", ro)
-        self.declare_parameter("residuals_topic", "/fdi/residuals", ro)
+        declare_params(self, PARAMS)
         self._model: Any = None
         self._pub: Any = None
         self._sub: Any = None

@@ -15,6 +15,7 @@ parts (simulator, identification) only when the corresponding factory is called.
 
 from __future__ import annotations
 
+import functools
 import importlib
 import os
 from collections.abc import Callable, Mapping
@@ -202,3 +203,9 @@ def ensure_bank(config: str | Path | GraphConfig, *, progress: bool = True, seed
     if wing.build_bank is None:
         return []
     return wing.build_bank(cfg, progress=progress, seed=seed, log=log)
+
+
+def fault_rules(plant: str) -> tuple[tuple[str, ...], Callable[[FaultEvent], None]]:
+    """The fault ids (or types) ``plant`` knows and its check of one event (ValueError with
+    the reason), for run-time injection requests (:mod:`fdi_ros.core.faultcheck`)."""
+    return tuple(get_wing(plant).faults), functools.partial(validate_fault, plant)

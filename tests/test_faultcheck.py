@@ -1,0 +1,85 @@
+"""Run-time fault requests: every malformed kind refused with its reason, valid ones turned
+into the event the plant schedules; the pacer's rate change applies from the moment of it."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fdi_ros.core.faultcheck import FaultRejected, check_fault_request, describe
+from fdi_ros.core.pacing import Pacer
+from fdi_ros.plants import fault_rules
+
+
+@pytest.fixture(scope="module")
+def diesel():
+    faults, check = fault_rules("diesel")
+    return dict(faults=faults, plant_check=check)
+
+
+@pytest.mark.parametrize("req, words", [
+    ((0.0, "no_such_fault", 5.0, "mm"), "unknown fault"),
+    ((0.0, "leak_ic_engine", -5.0, "mm"), ">= 0"),
+    ((0.0, "leak_ic_engine", math.nan, "mm"), "finite"),
+    ((0.0, "leak_ic_engine", math.inf, "mm"), "finite"),
+    ((0.0, "leak_ic_engine", 5.0, "mm", "zigzag"), "unknown profile"),
+    ((0.0, "leak_ic_engine", 5.0, "mm", "ramp", 0.0), "ramp_s > 0"),
+    ((0.0, "leak_ic_engine", 5.0, "mm", "ramp", -1.0), "ramp_s must be >= 0"),
+    ((math.nan, "leak_ic_engine", 5.0, "mm"), "t_s must be finite"),
+    ((1.0, "leak_ic_engine", 5.0, "mm"), "in the past"),
+    ((0.0, "leak_ic_engine", 500.0, "mm"), "outside"),  # the plant's own limit
+    ((0.0, "leak_ic_engine", 5.0, "bar"), "sized in"),  # the plant's own unit
+    ((0.0, "leak_ic_engine", "five", "mm"), "must be a number"),  # type: ignore
+    ((0.0, 42, 5.0, "mm"), "must be a string"),  # type: ignore[arg-type]
+])
+def test_malformed_requests_refused_with_reason(diesel, req, words):
+    with pytest.raises(FaultRejected) as exc:
+        check_fault_request(*req, now=2.0, **diesel)
+    assert words in str(exc.value)
+
+
+def test_valid_requests_become_events(diesel):
+    ev = check_fault_request(0.0, "leak_ic_engine", 5.0, "mm", now=2.5, **diesel)
+    assert (ev.t, ev.fault, ev.size, ev.profile, ev.active) == (2.5, "leak_ic_engine", 5.0,
+                                                                 "step", True)
+    ev = check_fault_request(7.0, "egr_leaky", 2.0, "mm", "ramp", 1.5, now=2.5,
+                             **diesel)
+    assert ev.t == 7.0 and ev.profile == "ramp" and ev.ramp_s == 1.5
+    assert "ramp over 1.5 s" in describe(ev)
+    clear = check_fault_request(-1.0, "", now=3.0, **diesel)
+    assert clear.fault == "" and "cleared" in describe(clear)
+    off = check_fault_request(0.0, "egr_leaky", 0.0, "mm", active=False, now=1.0,
+                              **diesel)
+    assert not off.active and "removed" in describe(off)
+
+
+def test_fault_types_admit_sized_ids():
+    faults, check = fault_rules("turbofan")
+    assert check_fault_request(0.0, "hub_small", now=0.0, faults=faults,
+                               plant_check=check).fault == "hub_small"
+    with pytest.raises(FaultRejected, match="unknown fault"):
+        check_fault_request(0.0, "hub_huge", now=0.0, faults=faults,
+                            plant_check=check)
+
+
+def test_pacer_rate_change_applies_from_then_on():
+    rng = np.random.default_rng()
+    seed = int(rng.integers(1 << 31))
+    print(f"seed {seed}")
+    rng = np.random.default_rng(seed)
+    p = Pacer(1.0)
+    assert p.target(5.0) == -math.inf  # nothing before start
+    w0, lag = float(rng.uniform(0, 100)), float(rng.uniform(0, 0.5))
+    p.start(w0, 0.0)
+    assert p.target(w0 + 10.0) == pytest.approx(10.0)
+    # at w0 + 10 the plant lags by `lag`; the new rate runs from where the plant is
+    p.set_rate(4.0, w0 + 10.0, 10.0 - lag)
+    assert p.target(w0 + 10.0) == pytest.approx(10.0 - lag)  # no catch-up of the past
+    assert p.target(w0 + 12.0) == pytest.approx(10.0 - lag + 8.0)
+    p.set_rate(0.0, w0 + 13.0, 14.0)
+    assert p.target(w0 + 13.0) == math.inf
+    for bad in (-1.0, math.nan, math.inf):
+        with pytest.raises(ValueError):
+            p.set_rate(bad, w0, 0.0)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 COMMAND = ("launch",)
 HELP = "launch the live graph of a configuration (each node its own process; Ctrl-C stops all)"
@@ -15,15 +16,30 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--record", metavar="BAG", help="record every fdi topic into this bag")
     p.add_argument("--replay", metavar="BAG", help="replay this bag instead of the plant")
     p.add_argument("--rate", type=float, default=1.0, help="replay rate (with --replay)")
+    p.add_argument("--start-delay", type=float, default=0.0, metavar="S",
+                   help="with --replay: wait S more seconds after the bank is active")
+    p.add_argument("--json", metavar="OUT",
+                   help="write the run's diagnosis events (as fdi-ros diagnose --json) to OUT")
+    p.add_argument("--respawn-limit", type=int, default=5,
+                   help="restarts of a dead supervisor or model node (0: none)")
 
 
 def run(args: argparse.Namespace) -> int:
-    from fdi_ros.launcher import Graph, run_until_interrupted
+    import sys
 
-    over: dict[str, dict] = {"fdi_plant": {}, "fdi_replayer": {"rate": args.rate}}
+    from fdi_ros.launcher import Graph, RespawnPolicy, run_until_interrupted
+
+    over: dict[str, dict] = {"fdi_plant": {},
+                             "fdi_replayer": {"rate": args.rate,
+                                              "start_delay_s": args.start_delay}}
     if args.scenario:
         over["fdi_plant"]["scenario"] = args.scenario
     if args.realtime_factor is not None:
         over["fdi_plant"]["realtime_factor"] = args.realtime_factor
+    if args.record and Path(args.record).exists():
+        print(f"fdi-ros launch: {args.record} already exists: the recorder cannot record "
+              "there; choose another --record", file=sys.stderr)
+        return 2
     graph = Graph(args.config, overrides=over, record=args.record, replay=args.replay)
-    return run_until_interrupted(graph)
+    return run_until_interrupted(graph, respawn=RespawnPolicy(limit=args.respawn_limit),
+                                 json_out=args.json)

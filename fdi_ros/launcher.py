@@ -253,8 +253,9 @@ def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
 
             watcher = GraphWatcher("fdi_launch_watcher", watch_end=True)
         graph.start(exclude=("fdi_replayer",) if replay else ())
-        if replay:
-            status = _start_replay_when_bank_active(graph, watcher, stop, log)
+        # a replay starts once every bank node is active (nothing replayed into a half bank)
+        pending = [e.node_name for e in graph.cfg.bank] if replay else []
+        replay_by = time.monotonic() + BANK_TIMEOUT_S
         attempts: dict[str, int] = {}
         due: dict[str, float] = {}
         end_seen_at: float | None = None
@@ -291,6 +292,15 @@ def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
                 if now >= t and not stop.is_set():
                     del due[name]
                     graph.start_node(name)
+            if replay and pending and not due and status == 0:
+                if watcher.lifecycle_state(pending[0], timeout=1.0) == "active":
+                    pending.pop(0)
+                elif now > replay_by:
+                    log(f"bank not active after {BANK_TIMEOUT_S:.0f} s "
+                        f"({', '.join(pending)}): replaying anyway")
+                    pending.clear()
+                if not pending:
+                    graph.start_node("fdi_replayer")
             if replay and watcher is not None:
                 if end_seen_at is None and watcher.seen.end_of_data:
                     end_seen_at = now
@@ -318,35 +328,12 @@ def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
 # after the end of data: the last diagnosis is the one no new segment follows for this long
 SETTLE_S = 2.0
 END_TIMEOUT_S = 60.0
+BANK_TIMEOUT_S = 120.0
 
 
 def _diagnosis_settled(watcher: Any, end_at: float, now: float) -> bool:
     last = watcher.seen.diagnoses[-1][0] if watcher.seen.diagnoses else end_at
     return now - max(last, end_at) >= SETTLE_S or now - end_at >= END_TIMEOUT_S
-
-
-def _start_replay_when_bank_active(graph: Graph, watcher: Any, stop: threading.Event,
-                                   log: Callable[[str], None]) -> int:
-    """Start the replayer once every bank node reports ``active`` (0), or 1 when a node of
-    the graph died first."""
-    pending = [e.node_name for e in graph.cfg.bank]
-    deadline = time.monotonic() + 120.0
-    while pending and not stop.is_set():
-        if time.monotonic() > deadline:
-            log(f"bank not active after 120 s ({', '.join(pending)}): replaying anyway")
-            break
-        dead = [n.name for n in graph.nodes if n.proc is not None and n.proc.poll() is not None
-                and (_died(n.proc.returncode) or n.module == "recorder_node")]
-        if dead:
-            log(f"a node exited before the replay could start: {dead}")
-            return 1
-        if watcher.lifecycle_state(pending[0], timeout=2.0) == "active":
-            pending.pop(0)
-        else:
-            watcher.executor.spin_once(timeout_sec=0.2)
-    if not stop.is_set():
-        graph.start_node("fdi_replayer")
-    return 0
 
 
 def _write_events(watcher: Any, path: str | Path) -> None:

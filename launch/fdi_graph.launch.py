@@ -15,7 +15,6 @@ from launch_ros.actions import Node
 
 from launch import LaunchDescription
 
-
 _GRAPHS = []
 
 

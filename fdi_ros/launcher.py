@@ -223,10 +223,11 @@ def _died(code: int | None) -> bool:
 def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
                           json_out: str | Path | None = None,
                           log: Callable[[str], None] | None = None) -> int:
-    """``fdi-ros launch``: run until SIGINT / SIGTERM, until the data ends (a replay), or until
+    """``fdi-ros launch``: run until SIGINT / SIGTERM, until the data ends, or until
     the graph cannot go on (the recorder died, a node died past its respawn limit).
 
-    A replay starts once every bank node is active; at the end-of-data event the launcher
+    The source (plant or replayer) starts once every bank node is active; when its data ends
+    (the replayer's end-of-data event, the end of the plant's scenario) the launcher
     waits for the last segment's diagnosis, stops the graph and exits 0. ``json_out`` gets the
     diagnosis events of the run (the format of ``fdi-ros diagnose --json``'s ``events``).
     Exit status: 0 clean, 1 a node died (or the recorder could not record), 130/143 on
@@ -244,17 +245,20 @@ def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
     # set both explicitly: a background job inherits SIGINT as ignored
     signal.signal(signal.SIGINT, _on_signal)
     signal.signal(signal.SIGTERM, _on_signal)
-    replay = graph.source == "fdi_replayer"
+    source = graph.source
     watcher = None
     status = 0
     try:
-        if replay or json_out is not None:
+        if source in {n.name for n in graph.nodes}:
             from fdi_ros.graphwatch import GraphWatcher
 
             watcher = GraphWatcher("fdi_launch_watcher", watch_end=True)
-        graph.start(exclude=("fdi_replayer",) if replay else ())
-        # a replay starts once every bank node is active (nothing replayed into a half bank)
-        pending = [e.node_name for e in graph.cfg.bank] if replay else []
+        graph.start(exclude=(source,))
+        # data starts once every bank node is active (nothing fed into a half bank)
+        pending = [e.node_name for e in graph.cfg.bank] if watcher is not None else []
+        started = watcher is None
+        if watcher is None:
+            log(f"no {source} in the graph: running until stopped")
         replay_by = time.monotonic() + BANK_TIMEOUT_S
         attempts: dict[str, int] = {}
         due: dict[str, float] = {}
@@ -292,22 +296,25 @@ def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
                 if now >= t and not stop.is_set():
                     del due[name]
                     graph.start_node(name)
-            if replay and pending and not due and status == 0:
-                if watcher.lifecycle_state(pending[0], timeout=1.0) == "active":
+            if not started and not due and status == 0:
+                if not pending:
+                    pass
+                elif watcher.lifecycle_state(pending[0], timeout=1.0) == "active":
                     pending.pop(0)
                 elif now > replay_by:
                     log(f"bank not active after {BANK_TIMEOUT_S:.0f} s "
-                        f"({', '.join(pending)}): replaying anyway")
+                        f"({', '.join(pending)}): starting {source} anyway")
                     pending.clear()
                 if not pending:
-                    graph.start_node("fdi_replayer")
-            if replay and watcher is not None:
-                if end_seen_at is None and watcher.seen.end_of_data:
+                    graph.start_node(source)
+                    started = True
+            if watcher is not None:
+                if end_seen_at is None and _data_ended(graph, watcher):
                     end_seen_at = now
                     log("end of data: waiting for the last segment's diagnosis")
                 if end_seen_at is not None and _diagnosis_settled(watcher, end_seen_at, now):
                     break
-            if not replay and not any(graph.alive().values()):
+            if watcher is None and not any(graph.alive().values()):
                 break
     finally:
         codes = graph.stop()
@@ -329,6 +336,14 @@ def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
 SETTLE_S = 2.0
 END_TIMEOUT_S = 60.0
 BANK_TIMEOUT_S = 120.0
+
+
+def _data_ended(graph: Graph, watcher: Any) -> bool:
+    """The replayer's end-of-data event, or the plant's log line at the end of its scenario."""
+    if watcher.seen.end_of_data:
+        return True
+    n = graph.node(graph.source)
+    return n.proc is not None and any("scenario finished" in line for line in n.lines)
 
 
 def _diagnosis_settled(watcher: Any, end_at: float, now: float) -> bool:

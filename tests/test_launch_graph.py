@@ -161,6 +161,17 @@ def test_sigkilled_recorder_stops_the_launcher_and_its_bag_recovers(demo_bag, tm
     from fdi_ros import bag as bagio
     from fdi_ros.core.events import diagnosis_events
 
+    tops = bagio.topics(rec)
+    assert "/clock" in tops and "/fdi/sensor_block" in tops  # /clock recorded when published
+    import yaml
+
+    meta = yaml.safe_load((rec / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["ros_distro"] == "jazzy"
+    offered = {t["topic_metadata"]["name"]: t["topic_metadata"]["offered_qos_profiles"]
+               for t in meta["topics_with_message_count"]}
+    # the replayer's own offer, as the recorder saw it on the graph
+    assert offered["/fdi/sensor_block"][0]["reliability"] == "reliable"
+    assert offered["/fdi/sensor_block"][0]["depth"] == 500
     live = sorted(bagio.read_diagnoses(rec), key=lambda d: d.index)
     assert len(live) > 20
     r = _fdi("diagnose", str(rec), "--json", str(tmp_path / "off.json"))

@@ -16,8 +16,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--record", metavar="BAG", help="record every fdi topic into this bag")
     p.add_argument("--replay", metavar="BAG", help="replay this bag instead of the plant")
     p.add_argument("--rate", type=float, default=1.0, help="replay rate (with --replay)")
-    p.add_argument("--start-delay", type=float, default=0.0, metavar="S",
-                   help="with --replay: wait S more seconds after the bank is active")
+    p.add_argument("--start-delay", type=float, default=None, metavar="S",
+                   help="the data source waits S more wall seconds once the bank is active "
+                        "(default: the configuration's, 0 for a replay)")
     p.add_argument("--json", metavar="OUT",
                    help="write the run's diagnosis events (as fdi-ros diagnose --json) to OUT")
     p.add_argument("--respawn-limit", type=int, default=5,
@@ -29,9 +30,13 @@ def run(args: argparse.Namespace) -> int:
 
     from fdi_ros.launcher import Graph, RespawnPolicy, run_until_interrupted
 
-    over: dict[str, dict] = {"fdi_plant": {},
-                             "fdi_replayer": {"rate": args.rate,
-                                              "start_delay_s": args.start_delay}}
+    over: dict[str, dict] = {"fdi_plant": {}, "fdi_replayer": {"rate": args.rate}}
+    if args.start_delay is not None:
+        if not args.start_delay >= 0:
+            print("fdi-ros launch: --start-delay must be >= 0", file=sys.stderr)
+            return 2
+        for section in over.values():
+            section["start_delay_s"] = args.start_delay
     if args.scenario:
         over["fdi_plant"]["scenario"] = args.scenario
     if args.realtime_factor is not None:

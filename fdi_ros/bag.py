@@ -67,7 +67,10 @@ class BagWriter:
     def _conn(self, topic: str, msgtype: str, qos: list[dict] | None = None) -> Any:
         key = (topic, msgtype)
         if key not in self._conns:
-            profiles = [qos_profile(**q) for q in (qos or [default_qos(topic)])]
+            try:
+                profiles = [qos_profile(**q) for q in (qos or [default_qos(topic)])]
+            except (KeyError, TypeError, ValueError):  # a policy rosbags has no name for
+                profiles = [qos_profile(**default_qos(topic))]
             self._conns[key] = self._writer.add_connection(
                 topic, msgtype, typestore=self._store, offered_qos_profiles=profiles)
         return self._conns[key]

@@ -171,7 +171,7 @@ def test_sigkilled_recorder_stops_the_launcher_and_its_bag_recovers(demo_bag, tm
                for t in meta["topics_with_message_count"]}
     # the replayer's own offer, as the recorder saw it on the graph
     assert offered["/fdi/sensor_block"][0]["reliability"] == "reliable"
-    assert offered["/fdi/sensor_block"][0]["depth"] == 500
+    assert offered["/fdi/sensor_block"][0]["durability"] == "volatile"
     live = sorted(bagio.read_diagnoses(rec), key=lambda d: d.index)
     assert len(live) > 20
     r = _fdi("diagnose", str(rec), "--json", str(tmp_path / "off.json"))

@@ -81,7 +81,7 @@ class RecorderNode(Node):
         out = []
         for info in self.get_publishers_info_by_topic(topic):
             q = info.qos_profile
-            out.append({"depth": int(q.depth) or 1,
+            out.append({"depth": int(q.depth),  # 0: not known from discovery
                         "history": q.history.name.lower(),
                         "reliability": q.reliability.name.lower(),
                         "durability": q.durability.name.lower(),

@@ -87,11 +87,6 @@ class Graph:
             plant["scenario"] = self.cfg.resolve(str(plant["scenario"]))
         if record is not None:
             sections.setdefault("fdi_recorder", {})["bag"] = str(Path(record).resolve())
-            # the source waits for the recorder too: a recording holds the data from its start
-            for src in ("fdi_plant", "fdi_replayer"):
-                if src in sections:
-                    sections[src]["min_subscribers"] = \
-                        int(sections[src].get("min_subscribers", 1)) + 1
         else:
             sections.pop("fdi_recorder", None)
         self.nodes: list[NodeProcess] = []

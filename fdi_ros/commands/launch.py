@@ -31,6 +31,11 @@ def run(args: argparse.Namespace) -> int:
     from fdi_ros.launcher import Graph, RespawnPolicy, run_until_interrupted
 
     over: dict[str, dict] = {"fdi_plant": {}, "fdi_replayer": {"rate": args.rate}}
+    if args.record:
+        # the source waits for the preprocessor and the recorder: the bag holds the data from
+        # its first block
+        for section in over.values():
+            section["min_subscribers"] = 2
     if args.start_delay is not None:
         if not args.start_delay >= 0:
             print("fdi-ros launch: --start-delay must be >= 0", file=sys.stderr)

@@ -17,7 +17,10 @@ from typing import Any
 from fdi_ros import msgs
 from fdi_ros.core.types import Diagnosis, FaultEvent, FeatureVector, ResidualVector, SampleBlock
 
-BAG_VERSION = 8  # rosbag2 metadata version understood by Jazzy's rosbag2 and by rosbags
+BAG_VERSION = 9  # the rosbag2 metadata version Jazzy writes (QoS profiles as a YAML list)
+ROS_DISTRO = "jazzy"
+# deadline / lifespan / lease "unset" as rosbag2 writes them (RMW_DURATION_INFINITE)
+_INFINITE = (9223372036, 854775807)
 
 
 class BagError(ValueError):
@@ -59,16 +62,26 @@ class BagWriter:
         if self._writer is not None:
             self._writer.close()
             self._writer = None
+            _set_distro(self.path / "metadata.yaml")
 
-    def _conn(self, topic: str, msgtype: str) -> Any:
+    def _conn(self, topic: str, msgtype: str, qos: list[dict] | None = None) -> Any:
         key = (topic, msgtype)
         if key not in self._conns:
-            self._conns[key] = self._writer.add_connection(topic, msgtype, typestore=self._store)
+            try:
+                profiles = [qos_profile(**q) for q in (qos or [default_qos(topic)])]
+            except (KeyError, TypeError, ValueError):  # a policy rosbags has no name for
+                profiles = [qos_profile(**default_qos(topic))]
+            self._conns[key] = self._writer.add_connection(
+                topic, msgtype, typestore=self._store, offered_qos_profiles=profiles)
         return self._conns[key]
 
-    def write_raw(self, topic: str, msgtype: str, data: bytes | memoryview, t_ns: int) -> None:
-        """Write serialized CDR bytes (e.g. from an rclpy ``raw=True`` subscription)."""
-        self._writer.write(self._conn(topic, msgtype), int(t_ns), data)
+    def write_raw(self, topic: str, msgtype: str, data: bytes | memoryview, t_ns: int,
+                  qos: list[dict] | None = None) -> None:
+        """Write serialized CDR bytes (e.g. from an rclpy ``raw=True`` subscription).
+
+        ``qos``: the publishers' offered profiles (dicts of :func:`qos_profile` arguments),
+        used when the topic is first written; default: the profile this package uses."""
+        self._writer.write(self._conn(topic, msgtype, qos), int(t_ns), data)
         self.count += 1
 
     def write(self, topic: str, msgtype: str, msg: Any, t_ns: int) -> None:
@@ -107,6 +120,46 @@ def write_snapshot(path: str | Path, records: Iterable[tuple[float, str, Any]]) 
             return f"snapshot bag {path}: {w.count} messages"
     except (OSError, ValueError) as exc:
         return f"snapshot bag {path} not written: {exc}"
+
+
+def default_qos(topic: str) -> dict:
+    """The profile this package's nodes offer on ``topic`` (see ``nodes.common``)."""
+    if topic.startswith("/fdi/fault_"):
+        return {"depth": 50, "durability": "transient_local"}
+    if topic == "/clock":
+        return {"depth": 10}
+    if topic == "/diagnostics":
+        return {"depth": 10}
+    return {"depth": 500}
+
+
+def qos_profile(depth: int = 10, history: str = "keep_last", reliability: str = "reliable",
+                durability: str = "volatile", liveliness: str = "automatic") -> Any:
+    """A rosbags QoS profile from policy names (lower case, as in rosbag2's metadata)."""
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
+
+    inf = QosTime(*_INFINITE)
+    return Qos(QosHistory[history.upper()], int(depth), QosReliability[reliability.upper()],
+               QosDurability[durability.upper()], inf, inf,
+               QosLiveliness[liveliness.upper()], inf, False)
+
+
+def _set_distro(meta: Path) -> None:
+    """rosbags writes ``ros_distro: rosbags``; the bags are for (and as) Jazzy's rosbag2."""
+    import yaml
+
+    if not meta.is_file():
+        return
+    doc = yaml.safe_load(meta.read_text())
+    doc["rosbag2_bagfile_information"]["ros_distro"] = ROS_DISTRO
+    meta.write_text(yaml.safe_dump(doc, sort_keys=False))
 
 
 def _ns(t_s: float) -> int:
@@ -191,3 +244,97 @@ def read_diagnoses(path: str | Path, topic: str = "/fdi/diagnosis") -> list[Diag
 
 def read_faults(path: str | Path, topic: str = "/fdi/fault_truth") -> list[FaultEvent]:
     return [msgs.to_fault_event(m) for _, _, _, m in read(path, [topic])]
+
+
+def _qos_from_channel(text: str) -> list[dict] | None:
+    """Channel metadata ``offered_qos_profiles`` (YAML, rosbag2 v8 numbers or v9 names) ->
+    :func:`qos_profile` arguments; None when absent or unreadable."""
+    import yaml
+
+    try:
+        items = yaml.safe_load(text) if text else None
+    except yaml.YAMLError:
+        return None
+    if not isinstance(items, list) or not items:
+        return None
+    names = {"history": ("system_default", "keep_last", "keep_all"),
+             "reliability": ("system_default", "reliable", "best_effort"),
+             "durability": ("system_default", "transient_local", "volatile"),
+             "liveliness": ("system_default", "automatic", "manual_by_node", "manual_by_topic")}
+    out = []
+    for it in items:
+        if not isinstance(it, dict):
+            return None
+        q: dict[str, Any] = {"depth": int(it.get("depth", 10))}
+        for key, table in names.items():
+            v = it.get(key)
+            if isinstance(v, int) and 0 <= v < len(table):
+                v = table[v]
+            if isinstance(v, str) and v.lower() in table:
+                q[key] = v.lower()
+        out.append(q)
+    return out
+
+
+def recover(path: str | Path) -> dict:
+    """Rebuild a bag that lost its ``metadata.yaml`` or the end of its MCAP file (a recorder
+    killed mid-run), as ``ros2 bag reindex`` does.
+
+    Every record the MCAP stream still holds is read in file order (past a missing summary and
+    footer, up to the first damaged byte) and written into a complete MCAP file with fresh
+    metadata. The original file is kept beside it as ``<name>.mcap.orig``; nothing is deleted.
+    Returns ``{"messages": n, "topics": {topic: n}, "truncated": bool, "error": str}``.
+    """
+    import shutil
+    import tempfile
+
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+
+    p = Path(path)
+    if not p.is_dir():
+        raise BagError(f"{p} is not a bag directory")
+    files = sorted(f for f in p.glob("*.mcap"))
+    if len(files) != 1:
+        raise BagError(f"{p}: expected one .mcap file, found {len(files)}")
+    src = files[0]
+    schemas: dict[int, str] = {}
+    channels: dict[int, tuple[str, str, list[dict] | None]] = {}
+    kept: list[tuple[str, str, int, bytes, list[dict] | None]] = []
+    error, truncated = "", False
+    with src.open("rb") as fh:
+        try:
+            for rec in StreamReader(fh).records:
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec.name
+                elif isinstance(rec, Channel):
+                    typ = schemas.get(rec.schema_id)
+                    if typ is not None:
+                        channels[rec.id] = (rec.topic, typ, _qos_from_channel(
+                            rec.metadata.get("offered_qos_profiles", "")))
+                elif isinstance(rec, Message) and rec.channel_id in channels:
+                    topic, typ, qos = channels[rec.channel_id]
+                    kept.append((topic, typ, rec.log_time, bytes(rec.data), qos))
+        except Exception as exc:  # the file ends (or is damaged) here: keep what came before
+            truncated, error = True, f"{type(exc).__name__}: {exc}"
+    kept.sort(key=lambda m: m[2])
+    tmp = Path(tempfile.mkdtemp(prefix="fdi_recover_", dir=p.parent))
+    try:
+        with BagWriter(tmp / p.name) as w:
+            for topic, typ, t_ns, data, qos in kept:
+                w.write_raw(topic, typ, data, t_ns, qos)
+        new = tmp / p.name
+        backup = src.with_name(src.name + ".orig")
+        if backup.exists():
+            raise BagError(f"{backup} exists: a recovery was already made; remove it first")
+        src.rename(backup)
+        made = next(new.glob("*.mcap"))
+        shutil.move(str(made), str(src))
+        meta = (new / "metadata.yaml").read_text().replace(made.name, src.name)
+        (p / "metadata.yaml").write_text(meta)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    counts: dict[str, int] = {}
+    for topic, *_ in kept:
+        counts[topic] = counts.get(topic, 0) + 1
+    return {"messages": len(kept), "topics": counts, "truncated": truncated, "error": error}

@@ -13,6 +13,7 @@ from fdi_ros import __version__, commands
 
 # One line per command group that has subcommands of its own.
 GROUP_HELP = {
+    "bag": "bag tools: recover a bag cut short",
     "bench": "benchmarks: print figures and ratios against a baseline measured in the same run",
     "reproduce": "reproduce a paper's experiment in simulation and compare with its numbers",
     "figures": "save the figures of a part (plant, identification) as PNG files",

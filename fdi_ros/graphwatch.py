@@ -25,17 +25,18 @@ class Seen:
     diagnostics: list[tuple[float, Any]] = field(default_factory=list)
     features: list[tuple[float, Any]] = field(default_factory=list)
     blocks: list[tuple[float, Any]] = field(default_factory=list)
+    end_of_data: list[tuple[float, Any]] = field(default_factory=list)
 
 
 class GraphWatcher:
     """An rclpy context + node of its own that records the graph's topics.
 
     ``watch_blocks`` / ``watch_features`` also record the high-rate streams (only the header
-    times are kept, for latency measurements).
+    times are kept, for latency measurements); ``watch_end`` the replayer's end-of-data event.
     """
 
     def __init__(self, name: str = "fdi_watcher", *, watch_features: bool = False,
-                 watch_blocks: bool = False) -> None:
+                 watch_blocks: bool = False, watch_end: bool = True) -> None:
         ensure_loopback_env()
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
@@ -64,6 +65,11 @@ class GraphWatcher:
         if watch_blocks:
             sub(SensorBlock, "/fdi/sensor_block",
                 lambda m: self.seen.blocks.append((now(), float(m.stamp_s[-1]))), DATA_QOS)
+        if watch_end:
+            from std_msgs.msg import Header
+
+            sub(Header, "/fdi/end_of_data",
+                lambda m: self.seen.end_of_data.append((now(), m)), LATCHED_QOS)
         self._inject_cli: Any = None
         self._fac = msgs.MessageFactory("rclpy")
 

@@ -17,6 +17,7 @@ import sys
 import tempfile
 import threading
 import time
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -71,6 +72,9 @@ class Graph:
         self.env["PYTHONUNBUFFERED"] = "1"
         # parameter files live until stop() (a ROS launch file keeps them for its nodes)
         self._tmp = Path(tempfile.mkdtemp(prefix="fdi_launch_"))
+        # removed by stop(), and at the latest when the graph object goes (or the interpreter
+        # exits), however the launcher ends
+        weakref.finalize(self, shutil.rmtree, str(self._tmp), True)
         sections = {k: dict(v) for k, v in self.cfg.node_params.items() if k in NODE_KINDS}
         for k, v in (overrides or {}).items():
             sections.setdefault(k, {}).update(v)
@@ -202,18 +206,163 @@ def _die_with_parent() -> None:
         pass
 
 
-def run_until_interrupted(graph: Graph) -> int:
-    """``fdi-ros launch``: run until Ctrl-C / SIGTERM or until every node has exited."""
+# nodes restarted when they die (ROS launch's ``respawn=True``); the others end the run
+RESPAWN_MODULES = ("supervisor_node", "residual_node")
+
+
+@dataclass
+class RespawnPolicy:
+    """Back-off ``first_delay_s * 2**k`` (capped at ``max_delay_s``), at most ``limit``
+    restarts per node."""
+
+    limit: int = 5
+    first_delay_s: float = 1.0
+    max_delay_s: float = 8.0
+
+    def delay(self, attempt: int) -> float:
+        return min(self.max_delay_s, self.first_delay_s * 2 ** attempt)
+
+
+def _died(code: int | None) -> bool:
+    """An exit that is not a clean stop (0, SIGINT, SIGTERM)."""
+    return code not in (None, 0, -signal.SIGINT, -signal.SIGTERM, 130, 143)
+
+
+def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
+                          json_out: str | Path | None = None,
+                          log: Callable[[str], None] | None = None) -> int:
+    """``fdi-ros launch``: run until SIGINT / SIGTERM, until the data ends, or until
+    the graph cannot go on (the recorder died, a node died past its respawn limit).
+
+    The source (plant or replayer) starts once every bank node is active; when its data ends
+    (the replayer's end-of-data event, the end of the plant's scenario) the launcher
+    waits for the last segment's diagnosis, stops the graph and exits 0. ``json_out`` gets the
+    diagnosis events of the run (the format of ``fdi-ros diagnose --json``'s ``events``).
+    Exit status: 0 clean, 1 a node died (or the recorder could not record), 130/143 on
+    SIGINT/SIGTERM.
+    """
+    log = log or (lambda m: print(f"fdi-ros launch: {m}", file=sys.stderr, flush=True))
+    respawn = respawn or RespawnPolicy()
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *a: stop.set())
-    graph.start()
+    got: dict[str, int] = {}
+
+    def _on_signal(signum: int, _frame: object) -> None:
+        got.setdefault("sig", signum)
+        stop.set()
+
+    # set both explicitly: a background job inherits SIGINT as ignored
+    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGTERM, _on_signal)
+    source = graph.source
+    watcher = None
+    status = 0
     try:
-        while not stop.is_set() and any(graph.alive().values()):
-            stop.wait(0.2)
-    except KeyboardInterrupt:
-        pass
-    codes = graph.stop()
-    bad = {k: v for k, v in codes.items() if v not in (0, None, -2, 130)}
+        if source in {n.name for n in graph.nodes}:
+            from fdi_ros.graphwatch import GraphWatcher
+
+            watcher = GraphWatcher("fdi_launch_watcher", watch_end=True)
+        graph.start(exclude=(source,))
+        # data starts once every bank node is active (nothing fed into a half bank)
+        pending = [e.node_name for e in graph.cfg.bank] if watcher is not None else []
+        started = watcher is None
+        if watcher is None:
+            log(f"no {source} in the graph: running until stopped")
+        replay_by = time.monotonic() + BANK_TIMEOUT_S
+        attempts: dict[str, int] = {}
+        due: dict[str, float] = {}
+        end_seen_at: float | None = None
+        while status == 0 and not stop.is_set():
+            if watcher is not None:
+                watcher.executor.spin_once(timeout_sec=0.1)
+            else:
+                stop.wait(0.2)
+            now = time.monotonic()
+            for n in graph.nodes:
+                code = n.proc.poll() if n.proc is not None else None
+                if n.proc is None or code is None or n.name in due:
+                    continue
+                if n.module == "recorder_node":
+                    log(f"the recorder exited (status {code}): the graph is not being "
+                        "recorded; stopping")
+                    status = 1
+                elif n.module in RESPAWN_MODULES and _died(code):
+                    k = attempts.get(n.name, 0)
+                    if k >= respawn.limit:
+                        log(f"{n.name} died (status {code}) and was restarted {k} times "
+                            "already: giving up")
+                        status = 1
+                    else:
+                        d = respawn.delay(k)
+                        log(f"{n.name} died (status {code}); respawning in {d:.1f} s "
+                            f"(attempt {k + 1}/{respawn.limit})")
+                        due[n.name] = now + d
+                        attempts[n.name] = k + 1
+                elif _died(code):
+                    log(f"{n.name} died (status {code}); stopping")
+                    status = 1
+            for name, t in list(due.items()):
+                if now >= t and not stop.is_set():
+                    del due[name]
+                    graph.start_node(name)
+            if not started and not due and status == 0:
+                if not pending:
+                    pass
+                elif watcher.lifecycle_state(pending[0], timeout=1.0) == "active":
+                    pending.pop(0)
+                elif now > replay_by:
+                    log(f"bank not active after {BANK_TIMEOUT_S:.0f} s "
+                        f"({', '.join(pending)}): starting {source} anyway")
+                    pending.clear()
+                if not pending:
+                    graph.start_node(source)
+                    started = True
+            if watcher is not None:
+                if end_seen_at is None and _data_ended(graph, watcher):
+                    end_seen_at = now
+                    log("end of data: waiting for the last segment's diagnosis")
+                if end_seen_at is not None and _diagnosis_settled(watcher, end_seen_at, now):
+                    break
+            if watcher is None and not any(graph.alive().values()):
+                break
+    finally:
+        codes = graph.stop()
+        if watcher is not None:
+            if json_out is not None:
+                _write_events(watcher, json_out)
+                log(f"diagnosis events written to {json_out}")
+            watcher.close()
+    bad = {k: v for k, v in codes.items() if _died(v)}
     if bad:
-        print(f"fdi-ros launch: nodes exited with errors: {bad}", file=sys.stderr)
-    return 0
+        log(f"nodes exited with errors: {bad}")
+        status = status or 1
+    if "sig" in got and status == 0:
+        status = 128 + got["sig"]
+    return status
+
+
+# after the end of data: the last diagnosis is the one no new segment follows for this long
+SETTLE_S = 2.0
+END_TIMEOUT_S = 60.0
+BANK_TIMEOUT_S = 120.0
+
+
+def _data_ended(graph: Graph, watcher: Any) -> bool:
+    """The replayer's end-of-data event, or the plant's log line at the end of its scenario."""
+    if watcher.seen.end_of_data:
+        return True
+    n = graph.node(graph.source)
+    return n.proc is not None and any("scenario finished" in line for line in n.lines)
+
+
+def _diagnosis_settled(watcher: Any, end_at: float, now: float) -> bool:
+    last = watcher.seen.diagnoses[-1][0] if watcher.seen.diagnoses else end_at
+    return now - max(last, end_at) >= SETTLE_S or now - end_at >= END_TIMEOUT_S
+
+
+def _write_events(watcher: Any, path: str | Path) -> None:
+    import json
+
+    from fdi_ros.core.events import diagnosis_events
+
+    ds = sorted((d for _, d in watcher.seen.diagnoses), key=lambda d: d.index)
+    Path(path).write_text(json.dumps({"events": diagnosis_events(ds)}, indent=2) + "\n")

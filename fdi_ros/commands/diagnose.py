@@ -54,21 +54,12 @@ def features_of_bag(path: str | Path) -> tuple[str, list]:
 
 
 def summarise(steps: list, plant_seconds: float, wall_seconds: float, truth: list) -> dict:
-    events, last_state, last_online = [], None, None
+    from fdi_ros.core.events import diagnosis_events
+
+    events = diagnosis_events(step.diagnosis for _fv, _res, step in steps)
     first_symptom: dict[str, float] = {}
     for _fv, _res, step in steps:
         d = step.diagnosis
-        if d.state != last_state:
-            events.append({"t": round(d.t, 4), "index": d.index, "state": d.state,
-                           "min_residual_model": d.min_residual_model,
-                           "fault_model": d.fault_model,
-                           "candidate_faults": list(d.candidate_faults)})
-            last_state = d.state
-        if d.models_online != last_online:
-            if last_online is not None:
-                events.append({"t": round(d.t, 4), "index": d.index, "bank_switch":
-                               {"models_online": list(d.models_online)}})
-            last_online = d.models_online
         s = step.symptoms
         if s is not None and s.valid:
             for name, lvl in zip(s.names, s.levels):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 COMMAND = ("launch",)
 HELP = "launch the live graph of a configuration (each node its own process; Ctrl-C stops all)"
@@ -15,15 +16,40 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--record", metavar="BAG", help="record every fdi topic into this bag")
     p.add_argument("--replay", metavar="BAG", help="replay this bag instead of the plant")
     p.add_argument("--rate", type=float, default=1.0, help="replay rate (with --replay)")
+    p.add_argument("--start-delay", type=float, default=None, metavar="S",
+                   help="the data source waits S more wall seconds once the bank is active "
+                        "(default: the configuration's, 0 for a replay)")
+    p.add_argument("--json", metavar="OUT",
+                   help="write the run's diagnosis events (as fdi-ros diagnose --json) to OUT")
+    p.add_argument("--respawn-limit", type=int, default=5,
+                   help="restarts of a dead supervisor or model node (0: none)")
 
 
 def run(args: argparse.Namespace) -> int:
-    from fdi_ros.launcher import Graph, run_until_interrupted
+    import sys
+
+    from fdi_ros.launcher import Graph, RespawnPolicy, run_until_interrupted
 
     over: dict[str, dict] = {"fdi_plant": {}, "fdi_replayer": {"rate": args.rate}}
+    if args.record:
+        # the source waits for the preprocessor and the recorder: the bag holds the data from
+        # its first block
+        for section in over.values():
+            section["min_subscribers"] = 2
+    if args.start_delay is not None:
+        if not args.start_delay >= 0:
+            print("fdi-ros launch: --start-delay must be >= 0", file=sys.stderr)
+            return 2
+        for section in over.values():
+            section["start_delay_s"] = args.start_delay
     if args.scenario:
         over["fdi_plant"]["scenario"] = args.scenario
     if args.realtime_factor is not None:
         over["fdi_plant"]["realtime_factor"] = args.realtime_factor
+    if args.record and Path(args.record).exists():
+        print(f"fdi-ros launch: {args.record} already exists: the recorder cannot record "
+              "there; choose another --record", file=sys.stderr)
+        return 2
     graph = Graph(args.config, overrides=over, record=args.record, replay=args.replay)
-    return run_until_interrupted(graph)
+    return run_until_interrupted(graph, respawn=RespawnPolicy(limit=args.respawn_limit),
+                                 json_out=args.json)

@@ -51,6 +51,7 @@ class RecorderNode(Node):
         self._lock = threading.Lock()
         self._writer: BagWriter | None = BagWriter(path)
         self._subs: dict[str, Any] = {}
+        self._seen: set[str] = set()
         self._wanted = dict(RECORDABLE)
         for t in extra:
             if t not in self._wanted:
@@ -75,16 +76,31 @@ class RecorderNode(Node):
             if topic in self._subs:
                 continue
             for typ in types:
-                if topic in self._extra or typ.startswith(f"{msgs.PACKAGE}/"):
+                if (topic in self._extra or typ.startswith(f"{msgs.PACKAGE}/")
+                        or RECORDABLE.get(topic) == typ):
                     self._subscribe(topic, typ)
                     self.get_logger().info(f"recording new topic {topic} [{typ}]")
                     break
+
+    def _offered_qos(self, topic: str) -> list[dict] | None:
+        """The publishers' offered QoS profiles, for the bag's metadata (as rosbag2 does)."""
+        out = []
+        for info in self.get_publishers_info_by_topic(topic):
+            q = info.qos_profile
+            out.append({"depth": int(q.depth),  # 0: not known from discovery
+                        "history": q.history.name.lower(),
+                        "reliability": q.reliability.name.lower(),
+                        "durability": q.durability.name.lower(),
+                        "liveliness": q.liveliness.name.lower()})
+        return out or None
 
     def _on_msg(self, topic: str, msgtype: str, data: bytes) -> None:
         t_ns = self.get_clock().now().nanoseconds
         with self._lock:
             if self._writer is not None:
-                self._writer.write_raw(topic, msgtype, data, t_ns)
+                qos = None if topic in self._seen else self._offered_qos(topic)
+                self._seen.add(topic)
+                self._writer.write_raw(topic, msgtype, data, t_ns, qos)
 
     def close(self) -> None:
         with self._lock:

@@ -7,6 +7,10 @@ Parameters: ``bag`` (required), ``rate`` (1.0; 0 = as fast as the graph acknowle
 change applies from that moment on), ``topics`` (default: /fdi/sensor_block, /fdi/fault_truth),
 ``min_subscribers`` (1: readers of /fdi/sensor_block matched before the replay starts),
 ``start_delay_s``, ``publish_clock``.
+
+When the bag is exhausted it publishes one end-of-data event on ``/fdi/end_of_data``
+(``std_msgs/msg/Header``, transient-local: late joiners see it too; ``stamp`` = the bag time of
+the last message, ``frame_id`` = ``"end_of_data <count>"``).
 """
 
 from __future__ import annotations
@@ -34,6 +38,8 @@ PARAMS = (
     Param("publish_clock", True, "publish the bag's time on /clock", read_only=True),
 )
 
+END_OF_DATA_TOPIC = "/fdi/end_of_data"
+
 
 class ReplayerNode(Node):
     def __init__(self) -> None:
@@ -56,6 +62,11 @@ class ReplayerNode(Node):
         self._clock_pub = (self.create_publisher(Clock, "/clock", 10)
                        if self.get_parameter("publish_clock").value else None)
         self._Clock = Clock
+        from std_msgs.msg import Header
+
+        self._Header = Header
+        self._end_pub = self.create_publisher(Header, END_OF_DATA_TOPIC, LATCHED_QOS)
+        self._last_ns = 0
         self._it = bagio.read(path, list(self._pubs), raw=True)
         self._next: tuple | None = None
         self._pacer = Pacer(float(self.get_parameter("rate").value))
@@ -87,6 +98,10 @@ class ReplayerNode(Node):
                 self._next = next(self._it, None)
                 if self._next is None:
                     self.done = True
+                    end = self._Header()
+                    end.stamp.sec, end.stamp.nanosec = divmod(self._last_ns, 1_000_000_000)
+                    end.frame_id = f"end_of_data {self.count}"
+                    self._end_pub.publish(end)
                     self.get_logger().info(f"replay finished: {self.count} messages")
                     return
             topic, _typ, t_ns, data = self._next
@@ -105,6 +120,7 @@ class ReplayerNode(Node):
                 self._clock_pub.publish(c)
             self.count += 1
             self._last_s = t_ns * 1e-9
+            self._last_ns = t_ns
             self._next = None
 
 

@@ -74,6 +74,13 @@ def _ensure(plant: str) -> None:
         from fdi_ros.plants.turbofan import live  # registers itself
 
         del live
+    elif plant.isidentifier():
+        import importlib
+
+        try:  # a plant wing registers itself in its ``live`` module
+            importlib.import_module(f"fdi_ros.plants.{plant}.live")
+        except ModuleNotFoundError:
+            pass
     if plant not in _RUNNERS:
         raise ValueError(f"unknown plant {plant!r}; known: {_known()}")
 

@@ -69,7 +69,8 @@ def isolability(table: Mapping[str, Sequence[int]]) -> dict[str, object]:
 
 def hypothesis_norm(z: np.ndarray, column: Sequence[int] | None, *,
                     quiet_penalty: float = 0.3,
-                    bound: np.ndarray | Sequence[float] | None = None) -> float:
+                    bound: np.ndarray | Sequence[float] | None = None,
+                    sign: Sequence[int] | None = None) -> float:
     """Norm of one hypothesis given residuals ``z`` in threshold units.
 
     ``column`` is the hypothesis' FST column (``None``: the fault-free hypothesis, which
@@ -78,7 +79,9 @@ def hypothesis_norm(z: np.ndarray, column: Sequence[int] | None, *,
     when it stays quiet, so that of two hypotheses that both explain the data the one whose
     residuals respond wins). ``bound`` (threshold units, per residual) is the largest effect
     the hypothesis can have (e.g. a sensor gain within +-20 %): what an explained residual
-    shows beyond it counts as unexplained. The norm is the RMS over the residuals.
+    shows beyond it counts as unexplained. ``sign`` (+1, -1 or 0 = either, per residual) is
+    the direction the fault drives an explained residual; the other direction is
+    unexplained. The norm is the RMS over the residuals.
     """
     z = np.asarray(z, dtype=float)
     if column is None:
@@ -87,6 +90,9 @@ def hypothesis_norm(z: np.ndarray, column: Sequence[int] | None, *,
     if s.shape != z.shape:
         raise ValueError(f"column has {s.size} entries, residuals {z.size}")
     a = np.abs(z)
+    if sign is not None:
+        sg = np.asarray(sign, dtype=float)
+        s = s & ~((sg != 0) & (np.sign(z) == -sg) & (a > 0))
     e = np.where(s, quiet_penalty * np.maximum(0.0, 1.0 - a), z)
     if bound is not None:
         e = np.where(s, e + np.maximum(0.0, a - np.asarray(bound, dtype=float)), e)

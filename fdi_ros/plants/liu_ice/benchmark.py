@@ -94,12 +94,13 @@ def apply_gain(rec, signal: str, gain: float, onset_s: float):
 
 
 def run_benchmark(data_dir: str | Path, *, config: str | Path, models_dir: str | Path,
-                  settings: IdentSettings = IdentSettings(),
+                  settings: IdentSettings | None = None,
                   say: Callable[[str], None] = lambda s: None,
                   files: list[str] | None = None) -> tuple[dict, list[FileResult]]:
     """Identify on the fault-free files, diagnose every CSV of ``data_dir``, score."""
     from fdi_ros.core.graphconfig import load_graph_config
 
+    settings = settings or IdentSettings()
     data_dir = Path(data_dir)
     if not data_dir.is_dir():
         raise FileNotFoundError(f"benchmark data directory {data_dir} not found")

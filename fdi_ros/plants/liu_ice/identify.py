@@ -115,7 +115,7 @@ def identify(records: Sequence[Measured], settings: IdentSettings = IdentSetting
     E, B = np.vstack(E), np.concatenate(B)
     thr, std, top = [], [], []
     for b in range(nb):
-        Eb = E[B == b] if np.any(B == b) else E
+        Eb = E[b == B] if np.any(b == B) else E
         sb = 1.4826 * np.median(Eb, axis=0)
         std.append(sb.tolist())
         top.append(Eb.max(axis=0).tolist())

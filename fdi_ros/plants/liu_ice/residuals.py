@@ -52,6 +52,10 @@ from fdi_ros.core.types import FeatureVector, ResidualVector
 from fdi_ros.plants.liu_ice import FAULT_ACTS_ON, FAULT_CLASSES
 
 MODEL_FILE = "structured.json"
+# Directions a process fault drives the residuals it acts on (sensor gains: either way).
+# The leak lets air into the manifold behind the throttle: the manifold pressure rises, the
+# metered flow falls short of the speed-density flow and of the throttle-position flow.
+FAULT_SIGNS = {"f_iml": {"r_sd": -1, "r_pim": 1, "r_maf": -1}}
 FORMAT = "fdi_ros.liu_ice.structured/1"
 
 
@@ -248,7 +252,11 @@ class StructuredResiduals:
                 r[np.flatnonzero(ok)[inside]] = (y[ok] - pred)[inside]
             cols.append(r)
         R = np.column_stack(cols)
-        return R, valid & np.all(np.isfinite(R), axis=1)
+        # A residual outside its model's identified region says nothing (0, no evidence);
+        # the sample is judged when most residuals are inside theirs.
+        inside = np.isfinite(R)
+        valid = valid & (inside.sum(axis=1) >= len(self.specs) - 1)
+        return np.where(inside, R, 0.0), valid
 
     def filtered(self, sig: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Filtered residuals (N, m) (NaN where not valid) and validity (N,)."""
@@ -395,6 +403,8 @@ class StructuredResidualModel:
         self.column = table[fault] if fault else None
         self.quiet_penalty = float(quiet_penalty)
         self.bounded = bool(fault) and FAULT_ACTS_ON[fault] in RAW_SIGNALS
+        signs = FAULT_SIGNS.get(fault, {})
+        self.sign = tuple(signs.get(n, 0) for n in stream.rs.names) if signs else None
         self.max_gain_log = float(max_gain_log)
 
     def reset(self) -> None:
@@ -409,7 +419,7 @@ class StructuredResidualModel:
             if self.bounded:
                 bound = self.max_gain_log / rs.thresholds_at(fv.get("n"))
             norm = hypothesis_norm(vals, self.column, quiet_penalty=self.quiet_penalty,
-                                   bound=bound)
+                                   bound=bound, sign=self.sign)
         return ResidualVector(model_id=self.model_id, index=fv.index, t=fv.t_end, valid=valid,
                               status=status, names=rs.names,
                               units=("threshold",) * len(rs.names),

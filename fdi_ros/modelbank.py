@@ -73,6 +73,15 @@ def ensure_bank(config: str | Path | GraphConfig, *, progress: bool = True, seed
                 log: Callable[[str], None] = print) -> list[str]:
     """Identify every missing model of the configuration's bank; returns what was built."""
     cfg = config if isinstance(config, GraphConfig) else load_graph_config(config)
+    if cfg.plant not in ("diesel", "turbofan") and cfg.plant.isidentifier():
+        import importlib
+
+        try:  # a plant wing that builds its own models
+            wing = importlib.import_module(f"fdi_ros.plants.{cfg.plant}.bank")
+        except ModuleNotFoundError:
+            wing = None
+        if wing is not None and hasattr(wing, "ensure_bank"):
+            return wing.ensure_bank(cfg, progress=progress, log=log)
     todo = _missing(cfg)
     if not todo:
         return []

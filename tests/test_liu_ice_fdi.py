@@ -115,3 +115,51 @@ def test_hidden_sensor_gain_fault_is_detected_and_isolated(identified, tmp_path)
     assert t[hit[0]] - onset <= 5.0
     named = set(iso[t >= onset]) - {""}
     assert named == {fault}, f"seed {seed}: isolated {named}, truth {fault}"
+
+
+@need_data
+def test_benchmark_cli_meets_the_acceptance_on_a_subset(tmp_path):
+    """Identification on the fault-free files, diagnosis of them and of two fault files
+    (boost and manifold pressure gains), scored per sample; the full set is in the README."""
+    import csv
+    import json
+
+    from fdi_ros.cli import main
+
+    data = tmp_path / "data"
+    data.mkdir()
+    files = ["ftp75city2_NF.csv", "wltp_NF.csv", "ftp75city2_f_pic_090.csv",
+             "ftp75city2_f_pim_110.csv"]
+    for f in files:
+        (data / f).symlink_to(DATA / f)
+    out, per = tmp_path / "b.json", tmp_path / "b.csv"
+    rc = main(["benchmark", "liu-ice", "--data", str(data), "--json", str(out),
+               "--per-sample", str(per), "--models", str(tmp_path / "models"), "--quiet"])
+    assert rc == 0
+    doc = json.loads(out.read_text())
+    o, ff = doc["overall"], doc["fault_files"]
+    assert o["false_alarm_rate"] <= 0.005 and o["fault_free_samples"] > 3000
+    assert ff["true_detection_rate"] >= 0.87 and ff["fault_isolation_accuracy"] >= 0.738
+    assert all(f["detection_delay_s"] <= 5.0 for f in doc["files"] if f["fault"])
+    assert doc["fault_symptom_table"]["columns"]["f_pic"] == [1, 0, 0, 0, 1]
+    with open(per) as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0]) == ["file", "time", "detected", "isolated"]
+    assert len(rows) == sum(f["samples"] for f in doc["files"])
+    assert {r["isolated"] for r in rows} <= {"", "f_pic", "f_pim", "f_waf", "f_iml"}
+    assert main(["benchmark", "liu-ice", "--data", str(tmp_path / "nope"), "--json",
+                 str(out), "--quiet"]) == 2
+
+
+def test_file_labels():
+    from fdi_ros.plants.liu_ice import truth_of
+
+    assert not truth_of("x/wltp_NF.csv").faulty
+    t = truth_of("ftp75city2_f_waf_110.csv")
+    assert (t.fault, t.gain, t.onset_s) == ("f_waf", 1.10, 122.45)
+    assert truth_of("wltp_f_iml_6mm.csv").size == 6.0
+    assert truth_of("other_f_pim_095.csv", 50.0).gain == 0.95
+    with pytest.raises(ValueError, match="onset unknown"):
+        truth_of("other_f_pim_095.csv")
+    with pytest.raises(ValueError, match="not a LiU-ICE"):
+        truth_of("readme.csv")

@@ -34,7 +34,8 @@ def test_liu_ice_table_isolates_the_four_classes():
     t = fault_symptom_table()
     iso = isolability(t)
     assert iso["isolable"] and not iso["column_inside"], iso
-    assert t["f_pic"] == (1, 0, 0, 0, 1)  # only r_pic and the throttle equation see p_ic
+    assert t["f_pic"] == (1, 0, 0, 0, 1, 0)  # only r_pic and the throttle equation see p_ic
+    assert t["f_iml"][-1] == 1 and t["f_pim"][-1] == 0  # fuel per metered air: leak, not p_im
 
 
 def test_hypothesis_norm_prefers_the_consistent_hypothesis():
@@ -141,7 +142,7 @@ def test_benchmark_cli_meets_the_acceptance_on_a_subset(tmp_path):
     assert o["false_alarm_rate"] <= 0.005 and o["fault_free_samples"] > 3000
     assert ff["true_detection_rate"] >= 0.87 and ff["fault_isolation_accuracy"] >= 0.738
     assert all(f["detection_delay_s"] <= 5.0 for f in doc["files"] if f["fault"])
-    assert doc["fault_symptom_table"]["columns"]["f_pic"] == [1, 0, 0, 0, 1]
+    assert doc["fault_symptom_table"]["columns"]["f_pic"] == [1, 0, 0, 0, 1, 0]
     with open(per) as fh:
         rows = list(csv.DictReader(fh))
     assert list(rows[0]) == ["file", "time", "detected", "isolated"]
@@ -163,3 +164,30 @@ def test_file_labels():
         truth_of("other_f_pim_095.csv")
     with pytest.raises(ValueError, match="not a LiU-ICE"):
         truth_of("readme.csv")
+
+
+@need_data
+def test_measured_runner_blocks_truth_and_injected_gain():
+    from fdi_ros.core.types import FaultEvent
+    from fdi_ros.plants.liu_ice.live import MeasuredRunner
+
+    csv = str(DATA / "ftp75city2_f_pim_090.csv")
+    whole = MeasuredRunner({"csv": csv, "block_samples": 1600}).next_block()
+    run = MeasuredRunner({"csv": csv, "block_samples": 7})
+    run.inject(FaultEvent(t=100.0, fault="f_waf", size=1.05))
+    with pytest.raises(ValueError, match="sensor gain"):
+        run.inject(FaultEvent(t=100.0, fault="f_iml", size=6.0, size_unit="mm"))
+    truth, maf, t = [], [], []
+    while not run.done:
+        b = run.next_block()
+        truth += run.pop_truth()
+        maf.append(b.channel("maf"))
+        t.append(b.t)
+    maf, t = np.concatenate(maf), np.concatenate(t)
+    assert np.array_equal(t, whole.t)
+    # the injected gain: 1.05 x the measured reading from t = 100 s on, nothing before
+    ratio = maf / whole.channel("maf")
+    assert np.allclose(ratio[t >= 100.0], 1.05) and np.array_equal(ratio[t < 100.0],
+                                                                    np.ones((t < 100.0).sum()))
+    # the file's own fault (its label) and the injected one, each reported once
+    assert [(e.fault, e.t) for e in truth] == [("f_waf", 100.0), ("f_pim", 123.30)]

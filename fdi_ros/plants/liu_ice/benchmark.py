@@ -51,9 +51,13 @@ class FileResult:
 def bank_models(cfg, rs: StructuredResiduals) -> dict[str, StructuredResidualModel]:
     """Fresh models of the bank over one new residual stream (one stream per file)."""
     stream = ResidualStream(rs)
-    return {e.id: StructuredResidualModel(stream=stream, model_id=e.id,
-                                          fault=str(e.model.get("fault", "") or ""))
-            for e in cfg.bank}
+    out = {}
+    for e in cfg.bank:
+        extra = {k: float(e.model[k]) for k in ("quiet_penalty", "max_gain_log")
+                 if k in e.model}
+        out[e.id] = StructuredResidualModel(stream=stream, model_id=e.id,
+                                            fault=str(e.model.get("fault", "") or ""), **extra)
+    return out
 
 
 def diagnose_record(cfg, rs: StructuredResiduals, rec, *, block_samples: int = 10):

@@ -18,6 +18,7 @@ from fdi_ros.plants.liu_ice.residuals import (
     RESIDUALS,
     Gate,
     MovingAverage,
+    ResidualSpec,
     StructuredResiduals,
     derived_signals,
     regressors,
@@ -72,8 +73,8 @@ def split(rec: Measured, fraction: float) -> tuple[Measured, Measured | None]:
     return ident, held
 
 
-def identify(records: Sequence[Measured], settings: IdentSettings = IdentSettings()
-             ) -> StructuredResiduals:
+def identify(records: Sequence[Measured], settings: IdentSettings = IdentSettings(), *,
+             specs: Sequence[ResidualSpec] = RESIDUALS) -> StructuredResiduals:
     """LOLIMOT model of every residual and fault-free thresholds from the identification
     part of each (fault-free) record."""
     if not records:
@@ -83,7 +84,8 @@ def identify(records: Sequence[Measured], settings: IdentSettings = IdentSetting
     ds = [derived_signals(s) for s in sigs]
     models, info = {}, {"fraction": settings.fraction,
                         "records": [r.source for r in records], "models": {}}
-    for spec in RESIDUALS:
+    specs = tuple(specs)
+    for spec in specs:
         Xs, ys = zip(*(regressors(d, spec) for d in ds))
         X, y = np.vstack(Xs), np.concatenate(ys)
         ok = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
@@ -93,11 +95,11 @@ def identify(records: Sequence[Measured], settings: IdentSettings = IdentSetting
         info["models"][spec.name] = {"n_models": res.n_models, "train_rmse": res.train_rmse,
                                      "samples": int(ok.sum()), "dynamic": spec.dynamic,
                                      "inputs": list(spec.input_names), "uses": list(spec.uses)}
-    m = len(RESIDUALS)
+    m = len(specs)
     nb = len(settings.bands_rpm) + 1
     proto = StructuredResiduals(models=models, centre=(0.0,) * m, threshold=((1.0,) * m,) * nb,
                                 filter_len=settings.filter_len, gate=settings.gate,
-                                bands_rpm=settings.bands_rpm)
+                                bands_rpm=settings.bands_rpm, specs=specs)
     F = np.vstack([proto.filtered(s)[0] for s in sigs])
     ok = np.all(np.isfinite(F), axis=1)
     if ok.sum() < 100:
@@ -127,7 +129,8 @@ def identify(records: Sequence[Measured], settings: IdentSettings = IdentSetting
                  "gate": settings.gate.__dict__})
     return StructuredResiduals(models=models, centre=tuple(float(x) for x in c),
                                threshold=tuple(thr), bands_rpm=settings.bands_rpm,
-                               filter_len=settings.filter_len, gate=settings.gate, info=info)
+                               filter_len=settings.filter_len, gate=settings.gate, info=info,
+                               specs=specs)
 
 
 __all__ = ["IdentSettings", "MovingAverage", "identify", "signals_of", "split"]

@@ -49,9 +49,20 @@ def blocks_of(rec, block_samples: int = 10) -> list[SampleBlock]:
     return out
 
 
+# Sensor gain faults that can be injected into measured data (the signal the gain acts on).
+INJECTABLE = {"f_pic": "p_ic", "f_pim": "p_im", "f_waf": "maf"}
+
+
 class MeasuredRunner:
     """A measured CSV played as the plant (scenario = the CSV path, or a mapping with
-    ``csv``, optional ``mapping``, ``block_samples``, ``onset_s``)."""
+    ``csv``, optional ``mapping``, ``block_samples``, ``onset_s``; a relative path is looked
+    up from the working directory, then from the repository root).
+
+    Sensor gain faults can be injected at run time as the benchmark's control unit injects
+    them: from the event's time on the sensor reads ``size`` x its measured value
+    (``fault`` ``f_pic``, ``f_pim`` or ``f_waf``; ``""`` or ``active = False`` removes it).
+    A leak is a process fault: measured data cannot be given one.
+    """
 
     plant = PLANT
 
@@ -61,11 +72,16 @@ class MeasuredRunner:
         sc = {"csv": scenario} if isinstance(scenario, str | Path) else dict(scenario or {})
         if "csv" not in sc:
             raise ValueError("the liu_ice plant needs a measured CSV (scenario: the CSV path)")
-        rec = load_record(sc["csv"], sc.get("mapping"))
+        path = Path(sc["csv"])
+        if not path.is_absolute() and not path.exists():
+            path = ROOT / path
+        sc["csv"] = path
+        rec = load_record(path, sc.get("mapping"))
         self._blocks = blocks_of(rec, int(sc.get("block_samples", 10)))
         self._i = 0
         self._t = float(rec.t[0])
         self._truth = _PendingTruth()
+        self._gains: dict[str, tuple[float, float]] = {}   # channel -> (from t, gain)
         for ev in truth_events(truth_of(sc["csv"], sc.get("onset_s"))):
             self._truth.add(ev)
 
@@ -81,10 +97,28 @@ class MeasuredRunner:
         b = self._blocks[self._i]
         self._i += 1
         self._t = float(b.t[-1])
+        if self._gains:
+            vals = b.values.copy()
+            for ch, (t0, g) in self._gains.items():
+                row = CHANNELS.index(ch)
+                vals[row, b.t >= t0] *= g
+            b = SampleBlock(plant=b.plant, index=b.index, t=b.t, alpha=b.alpha,
+                            channels=b.channels, units=b.units, values=vals)
         return b
 
     def inject(self, event: FaultEvent) -> None:
-        raise ValueError("measured data: faults cannot be injected at run time")
+        if not event.fault:
+            self._gains.clear()
+        elif event.fault not in INJECTABLE:
+            raise ValueError(f"measured data can only be given sensor gain faults "
+                             f"{sorted(INJECTABLE)}, not {event.fault!r}")
+        elif not event.active:
+            self._gains.pop(INJECTABLE[event.fault], None)
+        else:
+            if not (np.isfinite(event.size) and 0.5 <= event.size <= 2.0):
+                raise ValueError(f"gain {event.size} outside [0.5, 2]")
+            self._gains[INJECTABLE[event.fault]] = (float(event.t), float(event.size))
+        self._truth.add(event)
 
     def pop_truth(self) -> list[FaultEvent]:
         return self._truth.due(self._t)

@@ -1,6 +1,6 @@
 """Structured parity residuals of the LiU-ICE air path, LOLIMOT models identified fault-free.
 
-Five residual generators, each leaving out sensors so that the set isolates the four fault
+Six residual generators, each leaving out sensors so that the set isolates the four fault
 classes (see :data:`RESIDUALS`; the fault-symptom table follows from ``uses`` with
 :func:`fdi_ros.core.structure.derive_fst`). All are written in logarithms: a sensor gain
 ``g`` then shifts a residual by ``ln g`` at every operating point, whatever the flow.
@@ -18,6 +18,8 @@ residual   output                                     inputs (lag in samples)   
                                                                                   manifold
 ``r_th``   ln(maf sqrt(T_im) / p_ic) (throttle)       throttle(0,-1,-2),          maf, p_im,
                                                       ln(p_im/p_ic), dln p_im     p_ic
+``r_fuel`` ln(fuel / maf) (lambda control)            n, throttle(0,-2,-6), n(-4) maf,
+                                                                                  manifold
 =========  =========================================  ==========================  ==========
 
 Static models use the present sample only; the dynamic ones (lagged inputs and differences)
@@ -55,7 +57,7 @@ MODEL_FILE = "structured.json"
 # Directions a process fault drives the residuals it acts on (sensor gains: either way).
 # The leak lets air into the manifold behind the throttle: the manifold pressure rises, the
 # metered flow falls short of the speed-density flow and of the throttle-position flow.
-FAULT_SIGNS = {"f_iml": {"r_sd": -1, "r_pim": 1, "r_maf": -1}}
+FAULT_SIGNS = {"f_iml": {"r_sd": -1, "r_pim": 1, "r_maf": -1, "r_fuel": 1}}
 FORMAT = "fdi_ros.liu_ice.structured/1"
 
 
@@ -93,9 +95,13 @@ RESIDUALS: tuple[ResidualSpec, ...] = (
     ResidualSpec("r_th", "l_maf_ic",
                  (("throttle", 0), ("throttle", 1), ("throttle", 2), ("l_pr", 0),
                   ("dl_pim", 0)), ("maf", "p_im", "p_ic")),
+    ResidualSpec("r_fuel", "l_fuel_maf",
+                 (("n", 0), ("throttle", 0), ("throttle", 2), ("throttle", 6), ("n", 4)),
+                 ("maf", "manifold")),
 )
 RESIDUAL_NAMES = tuple(s.name for s in RESIDUALS)
-RAW_SIGNALS = ("n", "p_im", "p_ic", "maf", "throttle", "wastegate", "T_im", "p_amb", "T_amb")
+RAW_SIGNALS = ("n", "p_im", "p_ic", "maf", "throttle", "wastegate", "T_im", "p_amb", "T_amb",
+               "fuel")
 # Samples of history the residuals need (lags, differences and the gate).
 DIFF_LAG = 2
 
@@ -136,6 +142,7 @@ def derived_signals(sig: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         "l_pim_amb": l_pim - l_pamb,
         "l_maf_amb": l_maf + 0.5 * l_tamb - l_pamb,
         "l_maf_ic": l_maf + 0.5 * l_tim - l_pic,
+        "l_fuel_maf": ln(sig["fuel"]) - l_maf,
     }
 
 
@@ -393,7 +400,7 @@ class StructuredResidualModel:
     ``max_gain_log`` (log units) in each residual; the leak is not bounded."""
 
     def __init__(self, *, stream: ResidualStream, model_id: str, fault: str = "",
-                 quiet_penalty: float = 0.3, max_gain_log: float = MAX_GAIN_LOG) -> None:
+                 quiet_penalty: float = 0.6, max_gain_log: float = MAX_GAIN_LOG) -> None:
         table = stream.rs.table
         if fault and fault not in table:
             raise ValueError(f"unknown fault class {fault!r}; known: {sorted(table)}")
@@ -450,7 +457,7 @@ def _register() -> None:
             ResidualStream(StructuredResiduals.load(d))
         return StructuredResidualModel(stream=stream, model_id=model_id,
                                        fault=str(spec.get("fault", "") or ""),
-                                       quiet_penalty=float(spec.get("quiet_penalty", 0.3)),
+                                       quiet_penalty=float(spec.get("quiet_penalty", 0.6)),
                                        max_gain_log=float(spec.get("max_gain_log",
                                                                    MAX_GAIN_LOG)))
 

@@ -164,6 +164,7 @@ def test_file_labels():
         truth_of("other_f_pim_095.csv")
     with pytest.raises(ValueError, match="not a LiU-ICE"):
         truth_of("readme.csv")
+    assert not truth_of("my_own_bench.csv", unlabelled_ok=True).faulty
 
 
 @need_data

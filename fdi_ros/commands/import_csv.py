@@ -27,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
     from fdi_ros.plants.liu_ice.live import blocks_of, load_record, truth_events
 
     rec = load_record(args.csv, args.mapping)
-    truth = truth_of(args.csv, args.onset)
+    truth = truth_of(args.csv, args.onset, unlabelled_ok=True)
     blocks = blocks_of(rec, args.block_samples)
     events = truth_events(truth)
     with BagWriter(args.out) as w:
@@ -36,7 +36,8 @@ def run(args: argparse.Namespace) -> int:
             w.write_block(b)
             while pending and pending[0].t <= float(b.t[-1]):
                 w.write_fault(pending.pop(0))
-    label = f"{truth.fault} from {truth.onset_s:g} s" if truth.faulty else "no fault"
+    label = f"{truth.fault} from {truth.onset_s:g} s" if truth.faulty else \
+        "none (no fault in the file's label, or no label)"
     print(f"{Path(args.csv).name}: {rec.n_samples} samples in {len(blocks)} blocks, "
           f"ground truth {label} -> {args.out}")
     return 0

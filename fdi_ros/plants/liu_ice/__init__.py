@@ -56,15 +56,18 @@ class FileTruth:
         return bool(self.fault)
 
 
-def truth_of(path: str | Path, onset_s: float | None = None) -> FileTruth:
+def truth_of(path: str | Path, onset_s: float | None = None, *,
+             unlabelled_ok: bool = False) -> FileTruth:
     """Ground truth from a benchmark file name (``<cycle>_NF.csv``, ``<cycle>_f_waf_110.csv``:
     gain 1.10, ``<cycle>_f_iml_6mm.csv``: 6 mm leak) and the known onsets.
 
-    Raises ValueError for a name that carries no label, unless ``onset_s`` is given with
-    a parsable fault (a file of the benchmark's naming that is not in the onset table).
+    Raises ValueError for a name that carries no label (``unlabelled_ok``: no fault known,
+    i.e. no ground truth), and for a fault file whose onset is neither in the table nor given.
     """
     name = Path(path).name
     m = _NAME.match(Path(name).stem)
+    if m is None and unlabelled_ok:
+        return FileTruth()
     if m is None:
         raise ValueError(f"{name}: not a LiU-ICE benchmark file name (<cycle>_NF.csv or "
                          f"<cycle>_<f_pic|f_pim|f_waf|f_iml>_<size>.csv)")

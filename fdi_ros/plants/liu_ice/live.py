@@ -82,7 +82,7 @@ class MeasuredRunner:
         self._t = float(rec.t[0])
         self._truth = _PendingTruth()
         self._gains: dict[str, tuple[float, float]] = {}   # channel -> (from t, gain)
-        for ev in truth_events(truth_of(sc["csv"], sc.get("onset_s"))):
+        for ev in truth_events(truth_of(sc["csv"], sc.get("onset_s"), unlabelled_ok=True)):
             self._truth.add(ev)
 
     @property

@@ -38,6 +38,12 @@ class IdentSettings:
     k_sigma : ... but at least k_sigma robust standard deviations ...
     floor : ... and at least this (log units: 0.02 = a 2 % sensor gain).
     bands_rpm : edges of the engine-speed bands with thresholds of their own.
+    transient : judge the residuals while the inputs move too, against transient thresholds
+        (the same rule on the fault-free records, with the transient filter); else
+        transients are "not valid here".
+    transient_len : moving-average length [samples] while the inputs move.
+    transient_margin : transient threshold = this x the largest transient excursion on the
+        fault-free records (wider than ``margin``: transients are fewer and less alike).
     """
 
     fraction: float = 0.7
@@ -48,6 +54,9 @@ class IdentSettings:
     floor: float = 0.02
     bands_rpm: tuple[float, ...] = (1100.0,)
     gate: Gate = Gate(samples=20, max_throttle=0.3, max_speed=50.0)
+    transient: bool = True
+    transient_len: int = 10
+    transient_margin: float = 1.5
 
     def __post_init__(self) -> None:
         if not 0.1 <= self.fraction <= 1.0:
@@ -99,7 +108,8 @@ def identify(records: Sequence[Measured], settings: IdentSettings = IdentSetting
     nb = len(settings.bands_rpm) + 1
     proto = StructuredResiduals(models=models, centre=(0.0,) * m, threshold=((1.0,) * m,) * nb,
                                 filter_len=settings.filter_len, gate=settings.gate,
-                                bands_rpm=settings.bands_rpm, specs=specs)
+                                bands_rpm=settings.bands_rpm, specs=specs,
+                                transient_len=settings.transient_len)
     F = np.vstack([proto.filtered(s)[0] for s in sigs])
     ok = np.all(np.isfinite(F), axis=1)
     if ok.sum() < 100:
@@ -124,13 +134,29 @@ def identify(records: Sequence[Measured], settings: IdentSettings = IdentSetting
         thr.append(tuple(float(x) for x in np.maximum.reduce(
             [settings.k_sigma * sb, settings.margin * Eb.max(axis=0),
              np.full(m, settings.floor)])))
+    thr_t = None
+    if settings.transient:
+        Et, Bt = [], []
+        for s in allsig:
+            Ft, settled, inside = proto.transient_filtered(s)
+            keep = inside & ~settled & np.all(np.isfinite(Ft), axis=1)
+            Et.append(np.abs(Ft[keep] - c))
+            Bt.append(proto.band(s["n"][keep]))
+        Et, Bt = np.vstack(Et), np.concatenate(Bt)
+        thr_t = []
+        for b in range(nb):
+            Eb = Et[Bt == b] if np.any(Bt == b) else Et
+            thr_t.append(tuple(float(x) for x in np.maximum(
+                settings.transient_margin * Eb.max(axis=0), np.asarray(thr[b]))))
+        info["max_excursion_transient"] = [list(r) for r in thr_t]
     info.update({"valid_samples": int(ok.sum()), "robust_std": std, "max_excursion": top,
                  "settings": {k: v for k, v in settings.__dict__.items() if k != "gate"},
                  "gate": settings.gate.__dict__})
     return StructuredResiduals(models=models, centre=tuple(float(x) for x in c),
                                threshold=tuple(thr), bands_rpm=settings.bands_rpm,
                                filter_len=settings.filter_len, gate=settings.gate, info=info,
-                               specs=specs)
+                               specs=specs, threshold_transient=thr_t,
+                               transient_len=settings.transient_len)
 
 
 __all__ = ["IdentSettings", "MovingAverage", "identify", "signals_of", "split"]

@@ -209,6 +209,10 @@ class StructuredResiduals:
     gate: Gate = field(default_factory=Gate)
     specs: tuple[ResidualSpec, ...] = RESIDUALS
     info: dict = field(default_factory=dict)
+    # Thresholds while the inputs move (one row per speed band) and the filter length there;
+    # None: transients are "not valid here".
+    threshold_transient: tuple[tuple[float, ...], ...] | None = None
+    transient_len: int = 10
 
     def __post_init__(self) -> None:
         missing = [s.name for s in self.specs if s.name not in self.models]
@@ -223,6 +227,14 @@ class StructuredResiduals:
                              f"rows (speed bands) of {m}")
         if not np.all(np.asarray(self.threshold) > 0):
             raise ValueError("thresholds must be positive")
+        if self.threshold_transient is not None:
+            self.threshold_transient = tuple(tuple(float(x) for x in row)
+                                             for row in self.threshold_transient)
+            if np.asarray(self.threshold_transient).shape != np.asarray(self.threshold).shape \
+                    or not np.all(np.asarray(self.threshold_transient) > 0):
+                raise ValueError("transient thresholds need the shape of the thresholds, > 0")
+        if self.transient_len < 1:
+            raise ValueError("transient_len must be >= 1")
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -241,12 +253,18 @@ class StructuredResiduals:
     # -- batch (identification, offline checks) ----------------------------------------------
     def raw(self, sig: Mapping[str, np.ndarray], *,
             last_only: bool = False) -> tuple[np.ndarray, np.ndarray]:
-        """Unfiltered residuals (N, m) and validity (N,) of a whole record (with
-        ``last_only``: of its last sample, (1, m) and (1,))."""
+        """Unfiltered residuals (N, m) and validity (N,: settled and inside the identified
+        region) of a whole record (with ``last_only``: of its last sample)."""
+        R, settled, inside = self.raw_parts(sig, last_only=last_only)
+        return R, settled & inside
+
+    def raw_parts(self, sig: Mapping[str, np.ndarray], *,
+                  last_only: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Unfiltered residuals (N, m), inputs settled (N,), inside the region (N,)."""
         d = derived_signals(sig)
-        cols, valid = [], self.gate.mask(sig)
+        cols, settled = [], self.gate.mask(sig)
         if last_only:
-            valid = valid[-1:]
+            settled = settled[-1:]
         for s in self.specs:
             X, y = regressors(d, s)
             if last_only:
@@ -261,9 +279,9 @@ class StructuredResiduals:
         R = np.column_stack(cols)
         # A residual outside its model's identified region says nothing (0, no evidence);
         # the sample is judged when most residuals are inside theirs.
-        inside = np.isfinite(R)
-        valid = valid & (inside.sum(axis=1) >= len(self.specs) - 1)
-        return np.where(inside, R, 0.0), valid
+        each = np.isfinite(R)
+        inside = each.sum(axis=1) >= len(self.specs) - 1
+        return np.where(each, R, 0.0), settled, inside
 
     def filtered(self, sig: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Filtered residuals (N, m) (NaN where not valid) and validity (N,)."""
@@ -276,18 +294,31 @@ class StructuredResiduals:
         return np.searchsorted(np.asarray(self.bands_rpm), np.asarray(n, dtype=float),
                                side="right")
 
-    def thresholds_at(self, n: np.ndarray | float) -> np.ndarray:
-        """Thresholds (..., m) at engine speed(s) n."""
-        return np.asarray(self.threshold)[self.band(n)]
+    def thresholds_at(self, n: np.ndarray | float, *, transient: bool = False) -> np.ndarray:
+        """Thresholds (..., m) at engine speed(s) n (``transient``: while the inputs move)."""
+        rows = self.threshold_transient if transient and self.threshold_transient is not None \
+            else self.threshold
+        return np.asarray(rows)[self.band(n)]
 
     def z(self, filtered: np.ndarray, n: np.ndarray | float) -> np.ndarray:
         """Filtered residuals in threshold units (fault-free within +-1)."""
         return (filtered - np.asarray(self.centre)) / self.thresholds_at(n)
 
+    def transient_filtered(self, sig: Mapping[str, np.ndarray]
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Residuals averaged over ``transient_len`` samples regardless of the gate (NaN
+        outside the region), and the settled and inside masks."""
+        R, settled, inside = self.raw_parts(sig)
+        f = MovingAverage(self.transient_len, len(self.specs))
+        return np.array([f.step(r, v) for r, v in zip(R, inside)]), settled, inside
+
     def scores(self, sig: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Residuals in threshold units (N, m) and validity (N,) of a whole record."""
-        F, valid = self.filtered(sig)
-        return self.z(F, np.asarray(sig["n"], dtype=float)), valid
+        R, settled, inside = self.raw_parts(sig)
+        inside[: self.history - 1] = False   # as a stream: the history is not full yet
+        sc = Scorer(self)
+        out = [sc.step(r, st, ins, n) for r, st, ins, n in zip(R, settled, inside, sig["n"])]
+        return np.array([o[0] for o in out]), np.array([o[1] for o in out])
 
     # -- persistence ---------------------------------------------------------------------------
     def save(self, directory: str | Path) -> Path:
@@ -299,6 +330,8 @@ class StructuredResiduals:
             {"name": s.name, "target": s.target, "inputs": [list(x) for x in s.inputs],
              "uses": list(s.uses)} for s in self.specs],
             "centre": list(self.centre), "threshold": [list(r) for r in self.threshold],
+            "threshold_transient": None if self.threshold_transient is None else
+            [list(r) for r in self.threshold_transient], "transient_len": self.transient_len,
             "bands_rpm": list(self.bands_rpm),
             "filter_len": self.filter_len, "gate": self.gate.__dict__,
             "fault_symptom_table": {f: list(c) for f, c in self.table.items()},
@@ -324,9 +357,51 @@ class StructuredResiduals:
             return cls(models=models, centre=tuple(doc["centre"]),
                        threshold=tuple(tuple(r) for r in doc["threshold"]),
                        bands_rpm=tuple(doc["bands_rpm"]), filter_len=int(doc["filter_len"]),
+                       threshold_transient=None if doc.get("threshold_transient") is None
+                       else tuple(tuple(r) for r in doc["threshold_transient"]),
+                       transient_len=int(doc.get("transient_len", 10)),
                        gate=Gate(**doc["gate"]), specs=specs, info=doc.get("info", {}))
         except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
             raise ValueError(f"{path}: malformed residual set: {exc}") from exc
+
+
+TRANSIENT = "transient inputs: transient thresholds"
+
+
+class Scorer:
+    """One sample's residuals in threshold units, from its raw residuals.
+
+    Settled inputs: the average over the last ``filter_len`` settled samples against the
+    settled thresholds. Moving inputs: the average over the last ``transient_len`` samples
+    against the (wider) transient thresholds, or "not valid here" without them. Outside the
+    identified region: not valid, both filters restart.
+    """
+
+    def __init__(self, rs: StructuredResiduals) -> None:
+        self.rs = rs
+        m = len(rs.specs)
+        self._settled = MovingAverage(rs.filter_len, m)
+        self._moving = MovingAverage(rs.transient_len, m)
+
+    def reset(self) -> None:
+        self._settled.reset()
+        self._moving.reset()
+
+    def step(self, r: np.ndarray, settled: bool, inside: bool,
+             n: float) -> tuple[np.ndarray, bool, str]:
+        m = len(self.rs.specs)
+        if not inside:
+            self.reset()
+            return np.full(m, np.nan), False, "not valid here: outside the identified region"
+        moving = self._moving.step(r, True)
+        c = np.asarray(self.rs.centre)
+        if settled:
+            f = self._settled.step(r, True)
+            return (f - c) / self.rs.thresholds_at(n), True, ""
+        self._settled.reset()
+        if self.rs.threshold_transient is None:
+            return np.full(m, np.nan), False, "not valid here: transient inputs"
+        return (moving - c) / self.rs.thresholds_at(n, transient=True), True, TRANSIENT
 
 
 class ResidualStream:
@@ -340,14 +415,14 @@ class ResidualStream:
     def __init__(self, rs: StructuredResiduals) -> None:
         self.rs = rs
         self._hist: deque = deque(maxlen=rs.history)
-        self._filter = MovingAverage(rs.filter_len, len(rs.specs))
+        self._scorer = Scorer(rs)
         self._last_key: tuple[int, float] | None = None
         self._last: tuple[np.ndarray, bool, str] = (np.full(len(rs.specs), np.nan), False, "")
         self._last_t = -math.inf
 
     def reset(self) -> None:
         self._hist.clear()
-        self._filter.reset()
+        self._scorer.reset()
         self._last_key = None
         self._last_t = -math.inf
 
@@ -368,22 +443,18 @@ class ResidualStream:
             # a gap, a bad sample or time going back: the history is no longer contiguous
             self.reset()
             self._last_key = key
-            self._last = (self._filter.step(np.zeros(m), False), False,
-                          fv.status or "sample not valid")
+            self._last = (np.full(m, np.nan), False, fv.status or "sample not valid")
             return self._last
         self._last_t = fv.t_end
         self._hist.append(row)
         if len(self._hist) < self._hist.maxlen:
-            self._last = (self._filter.step(np.zeros(m), False), False,
-                          "not valid here: filling the history")
+            self._scorer.reset()
+            self._last = (np.full(m, np.nan), False, "not valid here: filling the history")
             return self._last
         H = np.array(self._hist)
         sig = {k: H[:, i] for i, k in enumerate(RAW_SIGNALS)}
-        R, valid = self.rs.raw(sig, last_only=True)
-        ok = bool(valid[-1])
-        status = "" if ok else ("not valid here: transient inputs or outside the identified "
-                                "region")
-        self._last = (self.rs.z(self._filter.step(R[-1], ok), row[0]), ok, status)
+        R, settled, inside = self.rs.raw_parts(sig, last_only=True)
+        self._last = self._scorer.step(R[-1], bool(settled[-1]), bool(inside[-1]), row[0])
         return self._last
 
 
@@ -424,7 +495,9 @@ class StructuredResidualModel:
         if valid:
             bound = None
             if self.bounded:
-                bound = self.max_gain_log / rs.thresholds_at(fv.get("n"))
+                # the bound in the units of the thresholds in effect for this sample
+                bound = self.max_gain_log / rs.thresholds_at(fv.get("n"),
+                                                             transient=status == TRANSIENT)
             norm = hypothesis_norm(vals, self.column, quiet_penalty=self.quiet_penalty,
                                    bound=bound, sign=self.sign)
         return ResidualVector(model_id=self.model_id, index=fv.index, t=fv.t_end, valid=valid,

@@ -45,6 +45,10 @@ def test_hypothesis_norm_prefers_the_consistent_hypothesis():
     # beyond the bound of its effect, or in the wrong direction, a hypothesis explains nothing
     assert hypothesis_norm(z, (1, 0, 1), bound=[1.0, 1.0, 1.0]) > hypothesis_norm(z, (1, 0, 1))
     assert hypothesis_norm(z, (1, 0, 1), sign=[1, 0, 1]) > hypothesis_norm(z, (1, 0, 1))
+    # a residual moved a little the wrong way costs more than one that stays quiet
+    quiet, wrong = np.array([3.0, 0.0, 0.0]), np.array([3.0, 0.0, -0.1])
+    assert hypothesis_norm(wrong, (1, 0, 1), sign=[1, 0, 1]) > \
+        hypothesis_norm(quiet, (1, 0, 1), sign=[1, 0, 1])
 
 
 def test_scoring_oracle():

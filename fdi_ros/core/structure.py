@@ -80,8 +80,9 @@ def hypothesis_norm(z: np.ndarray, column: Sequence[int] | None, *,
     residuals respond wins). ``bound`` (threshold units, per residual) is the largest effect
     the hypothesis can have (e.g. a sensor gain within +-20 %): what an explained residual
     shows beyond it counts as unexplained. ``sign`` (+1, -1 or 0 = either, per residual) is
-    the direction the fault drives an explained residual; the other direction is
-    unexplained. The norm is the RMS over the residuals.
+    the direction the fault drives an explained residual; a residual moved the other way
+    counts ``quiet_penalty + |z|`` (never less than one that stays quiet). The norm is the
+    RMS over the residuals.
     """
     z = np.asarray(z, dtype=float)
     if column is None:
@@ -90,12 +91,14 @@ def hypothesis_norm(z: np.ndarray, column: Sequence[int] | None, *,
     if s.shape != z.shape:
         raise ValueError(f"column has {s.size} entries, residuals {z.size}")
     a = np.abs(z)
-    if sign is not None:
-        sg = np.asarray(sign, dtype=float)
-        s = s & ~((sg != 0) & (np.sign(z) == -sg) & (a > 0))
     e = np.where(s, quiet_penalty * np.maximum(0.0, 1.0 - a), z)
     if bound is not None:
         e = np.where(s, e + np.maximum(0.0, a - np.asarray(bound, dtype=float)), e)
+    if sign is not None:
+        # driven the wrong way: as if it had not responded, plus what it shows
+        sg = np.asarray(sign, dtype=float)
+        wrong = s & (sg != 0) & (np.sign(z) == -sg)
+        e = np.where(wrong, quiet_penalty + a, e)
     return float(np.sqrt(np.mean(e ** 2)))
 
 

@@ -17,6 +17,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+ROOT = Path(__file__).resolve().parents[3]  # the repository (config/, build/)
 PLANT = "liu_ice"
 DISPLACEMENT_L = 1.953
 FAULT_FREE = ("ftp75city2_NF.csv", "wltp_NF.csv")

@@ -8,8 +8,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from fdi_ros.core.plants import ROOT
-from fdi_ros.plants.liu_ice import FAULT_FREE
+from fdi_ros.plants.liu_ice import FAULT_FREE, ROOT
 from fdi_ros.plants.liu_ice.residuals import MODEL_FILE
 
 DEFAULT_DATA = ROOT.parent / "shared" / "data" / "liu_ice"

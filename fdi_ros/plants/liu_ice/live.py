@@ -11,9 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fdi_ros.core.plants import ROOT, _PendingTruth, register_plant
 from fdi_ros.core.types import FaultEvent, FeatureVector, SampleBlock
-from fdi_ros.plants.liu_ice import CHANNELS, PLANT, UNITS, FileTruth, truth_of
+from fdi_ros.plants.liu_ice import CHANNELS, PLANT, ROOT, UNITS, FileTruth, truth_of
 
 MAPPING = ROOT / "config" / "mappings" / "liu_ice.yaml"
 
@@ -80,10 +79,10 @@ class MeasuredRunner:
         self._blocks = blocks_of(rec, int(sc.get("block_samples", 10)))
         self._i = 0
         self._t = float(rec.t[0])
-        self._truth = _PendingTruth()
+        self._truth: list[FaultEvent] = []   # pending, in time order
         self._gains: dict[str, tuple[float, float]] = {}   # channel -> (from t, gain)
         for ev in truth_events(truth_of(sc["csv"], sc.get("onset_s"), unlabelled_ok=True)):
-            self._truth.add(ev)
+            self._add_truth(ev)
 
     @property
     def t(self) -> float:
@@ -118,10 +117,15 @@ class MeasuredRunner:
             if not (np.isfinite(event.size) and 0.5 <= event.size <= 2.0):
                 raise ValueError(f"gain {event.size} outside [0.5, 2]")
             self._gains[INJECTABLE[event.fault]] = (float(event.t), float(event.size))
-        self._truth.add(event)
+        self._add_truth(event)
+
+    def _add_truth(self, event: FaultEvent) -> None:
+        self._truth = sorted([*self._truth, event], key=lambda e: e.t)
 
     def pop_truth(self) -> list[FaultEvent]:
-        return self._truth.due(self._t)
+        due = [e for e in self._truth if e.t <= self._t]
+        self._truth = self._truth[len(due):]
+        return due
 
 
 class LiuIcePreprocessor:
@@ -151,4 +155,9 @@ class LiuIcePreprocessor:
         self._index = 0
 
 
-register_plant(PLANT, runner=MeasuredRunner, preprocessor=LiuIcePreprocessor)
+try:  # the plant registry of fdi_ros.core.plants (a wing module registers it elsewhere)
+    from fdi_ros.core.plants import register_plant
+except ImportError:  # pragma: no cover - registry moved to fdi_ros.plants (see wing.py)
+    register_plant = None
+if register_plant is not None:
+    register_plant(PLANT, runner=MeasuredRunner, preprocessor=LiuIcePreprocessor)

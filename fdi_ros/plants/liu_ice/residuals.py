@@ -471,7 +471,7 @@ class StructuredResidualModel:
     ``max_gain_log`` (log units) in each residual; the leak is not bounded."""
 
     def __init__(self, *, stream: ResidualStream, model_id: str, fault: str = "",
-                 quiet_penalty: float = 0.6, max_gain_log: float = MAX_GAIN_LOG) -> None:
+                 quiet_penalty: float = 0.45, max_gain_log: float = MAX_GAIN_LOG) -> None:
         table = stream.rs.table
         if fault and fault not in table:
             raise ValueError(f"unknown fault class {fault!r}; known: {sorted(table)}")
@@ -530,7 +530,7 @@ def _register() -> None:
             ResidualStream(StructuredResiduals.load(d))
         return StructuredResidualModel(stream=stream, model_id=model_id,
                                        fault=str(spec.get("fault", "") or ""),
-                                       quiet_penalty=float(spec.get("quiet_penalty", 0.6)),
+                                       quiet_penalty=float(spec.get("quiet_penalty", 0.45)),
                                        max_gain_log=float(spec.get("max_gain_log",
                                                                    MAX_GAIN_LOG)))
 

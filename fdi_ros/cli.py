@@ -18,6 +18,7 @@ GROUP_HELP = {
     "reproduce": "reproduce a paper's experiment in simulation and compare with its numbers",
     "figures": "save the figures of a part (plant, identification) as PNG files",
     "train": "train the models of a plant (e.g. Takagi-Sugeno node models)",
+    "benchmark": "real-data benchmarks: diagnose measured files and score them per sample",
 }
 
 

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from fdi_ros.core.discrepancy import discover
-from fdi_ros.core.meanvalue import LIU_ICE_FAULT_FREE, identify_liu_ice
 from fdi_ros.core.measured import load_csv
+from fdi_ros.plants.liu_ice.engine import LIU_ICE_FAULT_FREE, identify_liu_ice
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "liu_ice"

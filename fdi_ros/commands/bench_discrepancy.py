@@ -32,8 +32,8 @@ def _liu_record(data_dir: str, minutes: float):
     import numpy as np
 
     from fdi_ros.commands.discrepancy import LIU_MAPPING, _here_or_repo
-    from fdi_ros.core.meanvalue import LIU_ICE_FAULT_FREE, identify_liu_ice
     from fdi_ros.core.measured import Measured, load_csv, segments_from_gaps
+    from fdi_ros.plants.liu_ice.engine import LIU_ICE_FAULT_FREE, identify_liu_ice
 
     mapping = _here_or_repo(LIU_MAPPING)
     d = Path(_here_or_repo(data_dir))

@@ -99,7 +99,7 @@ def build_baseline(args, say):
                                     f"{MANIFEST}); run `fdi-ros identify` first")
         return DieselReferenceBaseline(path=str(args.reference))
     if args.plant == "liu_ice":
-        from fdi_ros.core.meanvalue import LIU_ICE_FAULT_FREE, identify_liu_ice
+        from fdi_ros.plants.liu_ice.engine import LIU_ICE_FAULT_FREE, identify_liu_ice
 
         mapping = args.mapping or _here_or_repo(LIU_MAPPING)
         files = args.ident or [str(Path(_here_or_repo(args.data_dir)) / f)

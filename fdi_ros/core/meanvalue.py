@@ -1,4 +1,4 @@
-"""Speed-density mean-value intake model (used for the LiU-ICE gasoline engine data).
+"""Speed-density mean-value intake model of a reciprocating engine (any displacement).
 
 The air mass flow an engine of displacement V_D draws at speed n from a manifold at pressure p
 and temperature T is that of an ideal displacement pump times the volumetric efficiency:
@@ -256,25 +256,3 @@ class SpeedDensityModel:
         if "storage" in d:
             d["storage"] = tuple(d["storage"])
         return cls(**d)
-
-
-# --- the LiU-ICE gasoline engine (real test-bench data, ../shared/data/liu_ice) --------------
-LIU_ICE_DISPLACEMENT_L = 1.953
-LIU_ICE_FAULT_FREE = ("ftp75city2_NF.csv", "wltp_NF.csv")
-
-
-def liu_ice_model_template() -> SpeedDensityModel:
-    """Speed-density model of the LiU-ICE engine: eta_V cubic in (n, p_im), filling of the
-    manifold and the charge-air volume (intercooler pressure), leak to ambient."""
-    return SpeedDensityModel(displacement_l=LIU_ICE_DISPLACEMENT_L, n="n", p="p_im", T="T_im",
-                             channel="maf", flow_scale=3600.0, degree=3,
-                             storage=("p_im", "p_ic"), derivative_window_s=0.1,
-                             leak_p_amb="p_amb", leak_T_amb="T_amb", leak_cd=0.7)
-
-
-def identify_liu_ice(records: list[Measured], *, fraction: float = 0.6) -> SpeedDensityModel:
-    """Identify the LiU-ICE model on the first ``fraction`` of each fault-free record."""
-    if not 0.1 <= fraction <= 1.0:
-        raise ValueError("fraction must be within [0.1, 1]")
-    parts = [r.window(r.t[0], r.t[0] + fraction * (r.t[-1] - r.t[0])) for r in records]
-    return liu_ice_model_template().fit(parts)

@@ -43,6 +43,7 @@ ENV_VAR = "FDI_ROS_WINGS"
 TABLE: dict[str, str] = {
     "diesel": "fdi_ros.plants.diesel.wing",
     "turbofan": "fdi_ros.plants.turbofan.wing",
+    "liu_ice": "fdi_ros.plants.liu_ice.wing",
 }
 
 Log = Callable[[str], None]

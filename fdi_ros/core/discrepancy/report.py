@@ -241,6 +241,11 @@ def write_report(out_dir: str | Path, data: Measured, baseline, extended: Extend
         lines.append("| - | none significant | | | | | | |")
     for f in result.findings:
         for a in f.alternatives:
+            if "separate_by" in a:  # a tie with another sensor: why, and what separates
+                lines.append(f"\nFinding {f.rank} ({f.label} on {f.channel}) is **tied** with "
+                             f"**{a['label']}** ({_fmt_params(a['params'])}): {a['why']}. "
+                             f"Would separate them: {a['separate_by']}.")
+                continue
             lines.append(f"\nFinding {f.rank} ({f.label}) is indistinguishable on the held-out "
                          f"blocks from **{a['label']}** (gain {a['gain_pct']:.1f} %): "
                          f"{_fmt_params(a['params'])}.")

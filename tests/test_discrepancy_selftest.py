@@ -78,3 +78,28 @@ def test_cli_needs_its_arguments(capsys, tmp_path):
     assert main(["discrepancy", "selftest", "--n", "-1", "--seed", "1", "--json",
                  str(tmp_path / "o.json")]) == 2
     assert not (tmp_path / "o.json").exists()
+
+
+def test_warm_up_dependence_beats_a_change_over_time(baseline):
+    """A channel depending on a smooth warm-up temperature looks like a drift or a gain that
+    changes in time; the measured column explains it with fewer parameters and is named."""
+    import numpy as np
+
+    from fdi_ros.core.discrepancy import discover
+    from fdi_ros.core.measured import Measured
+
+    seed = secrets.randbelow(10**6)
+    print(f"warm-up seed {seed}")
+    rng = np.random.default_rng(seed)
+    rec = sc.plant_record(seed % 5000 + 3000, duration_s=60.0)
+    tau = rng.uniform(15.0, 40.0)
+    warm = 290.0 + rng.uniform(30.0, 70.0) * (1.0 - np.exp(-(rec.t - rec.t[0]) / tau))
+    coef = rng.choice([-1.0, 1.0]) * rng.uniform(4.0, 8.0)
+    sig = dict(rec.signals, T_coolant=warm)
+    sig["maf"] = sig["maf"] + coef * (warm - warm.mean()) / warm.std()
+    data = Measured(t=rec.t, signals=sig, units=dict(rec.units, T_coolant="K"),
+                    alpha=rec.alpha, segment=rec.segment, source="warm-up", mapped=rec.mapped)
+    res, _ = discover(data, baseline)
+    top = res.findings[0]
+    assert (top.effect, top.params.get("input")) == ("input_dependence", "T_coolant"), (
+        seed, [(f.label, round(f.gain_pct, 1)) for f in res.findings])

@@ -27,6 +27,30 @@ def _scaled(data: Measured, name: str, k: float, after: np.ndarray) -> Measured:
                     segment=data.segment, source=data.source, mapped=data.mapped)
 
 
+def _windows(data: Measured, max_samples: int, n_windows: int = 12) -> Measured:
+    """At most ``max_samples`` samples in ``n_windows`` contiguous windows spread over the
+    record (each window keeps its crank-angle and time structure; windows are segments)."""
+    n = data.n_samples
+    if n <= max_samples:
+        return data
+    w = max_samples // n_windows
+    starts = np.linspace(0, n - w, n_windows).astype(int)
+    keep = np.zeros(n, bool)
+    win = np.zeros(n, int)
+    for i, a in enumerate(starts):
+        keep[a:a + w] = True
+        win[a:a + w] = i
+    seg = np.asarray(data.segment)[keep]
+    wk = win[keep]
+    change = np.concatenate([[0], (np.diff(seg) != 0) | (np.diff(wk) != 0)])
+    return Measured(t=data.t[keep], signals={k: np.asarray(v)[keep] for k, v in
+                                             data.signals.items()},
+                    units=dict(data.units),
+                    alpha=None if data.alpha is None else data.alpha[keep],
+                    segment=np.cumsum(change).astype(int), source=data.source,
+                    mapped=data.mapped)
+
+
 def _block_mse(e2: np.ndarray, t: np.ndarray, block_s: float) -> np.ndarray:
     ok = np.isfinite(e2)
     if not ok.any():
@@ -40,16 +64,20 @@ def _block_mse(e2: np.ndarray, t: np.ndarray, block_s: float) -> np.ndarray:
 
 def input_gain_ties(data: Measured, model, channel: str, gain: float, onset_s: float | None,
                     *, alpha: float = 0.05, block_s: float = 5.0,
-                    bounds: tuple[float, float] = (0.6, 1.6)) -> list[dict]:
+                    bounds: tuple[float, float] = (0.6, 1.6),
+                    max_samples: int = 40_000) -> list[dict]:
     """Input-sensor gains that explain the data as well as ``gain`` on ``channel``.
 
-    An input gain is kept unless it explains the data significantly worse (one-sided test);
-    when it explains them significantly better, ``fits_better`` says so (the channel gain
-    stays the finding: it is the extension of the channel's prediction).
+    Long records are judged on ``max_samples`` samples in contiguous windows spread over
+    the record (each refit re-runs the model). An input gain is kept unless it explains the
+    data significantly worse (one-sided test); when it explains them significantly better,
+    ``fits_better`` says so (the channel gain stays the finding: it is the extension of the
+    channel's prediction).
     Returns one dict per tied input: effect, label, channel, params (gain, onset_s),
     ``p_distinguish`` (two-sided test that the two explanations differ), ``fits_better``,
     ``why`` and ``separate_by``.
     """
+    data = _windows(data, max_samples)
     t = data.t
     after = np.ones(t.shape, bool) if onset_s is None else t >= onset_s
     y = np.asarray(data[channel], float)

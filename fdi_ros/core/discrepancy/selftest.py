@@ -97,6 +97,7 @@ class CaseResult:
     found_channel: str | None
     found_params: dict
     tie: list = field(default_factory=list)
+    tie_labels: list = field(default_factory=list)
     seconds: float = 0.0
 
     @property
@@ -116,6 +117,7 @@ class CaseResult:
         return {"index": self.index, "effect": self.effect, "channel": self.channel,
                 "truth": self.truth, "found": self.found, "found_channel": self.found_channel,
                 "found_params": self.found_params, "tie": self.tie,
+                "tie_labels": self.tie_labels,
                 "effect_right": self.effect_right, "param_rel_error": self.param_rel_error,
                 "seconds": self.seconds}
 
@@ -153,12 +155,14 @@ def run_case(index: int, rng: np.random.Generator, baseline, effect: str | None,
     res, _ = discover(rec, baseline)
     top = res.findings[0] if res.findings else None
     tie = [a["effect"] for a in top.alternatives] if top else []
+    tie_labels = [a["label"] for a in top.alternatives] if top else []
     return CaseResult(index=index, effect=effect, channel=channel,
                       truth={k: (list(v) if isinstance(v, tuple) else v)
                              for k, v in params.items()},
                       found=top.effect if top else None,
                       found_channel=top.channel if top else None,
                       found_params=dict(top.params) if top else {}, tie=tie,
+                      tie_labels=tie_labels,
                       seconds=time.perf_counter() - t0)
 
 

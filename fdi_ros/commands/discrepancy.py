@@ -33,14 +33,30 @@ def _here_or_repo(path: str) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--plant", required=True, choices=["diesel", "liu_ice"],
-                        help="plant whose model is checked against the data")
-    parser.add_argument("--measured", required=True,
+    sub = parser.add_subparsers(dest="action", metavar="[selftest]", required=False)
+    st = sub.add_parser("selftest", help="randomised self-test: hide random effects in plant "
+                                         "data, analyse, report the confusion matrix",
+                        description="Draw N random cases (effect from the whole catalogue, "
+                                    "channel, size log-uniform over the detectable range, "
+                                    "extra columns with random smooth shapes, plant run and "
+                                    "window) plus null cases, hide each, analyse, and report "
+                                    "the confusion matrix, channel accuracy, parameter error "
+                                    "and false discoveries.")
+    st.add_argument("--n", type=int, required=True, help="cases with a hidden effect")
+    st.add_argument("--nulls", type=int, default=None,
+                    help="null cases (nothing hidden); default N // 6, at least 1")
+    st.add_argument("--seed", type=int, required=True, help="seed of the draw (replayable)")
+    st.add_argument("--json", dest="selftest_json", required=True, help="output JSON file")
+    st.add_argument("--quiet", dest="selftest_quiet", action="store_true")
+    st.set_defaults(_run=run_selftest)
+    parser.add_argument("--plant", choices=["diesel", "liu_ice"],
+                        help="plant whose model is checked against the data (required)")
+    parser.add_argument("--measured",
                         help="measured data: CSV (our columns, or any columns with --mapping) "
-                             "or a bag directory")
+                             "or a bag directory (required)")
     parser.add_argument("--mapping", default=None,
                         help=f"mapping YAML for a CSV (liu_ice default: {LIU_MAPPING})")
-    parser.add_argument("--json", required=True, help="output JSON file")
+    parser.add_argument("--json", help="output JSON file (required)")
     parser.add_argument("--report", default=None, help="report directory (Markdown + PNGs)")
     parser.add_argument("--save-model", default=None,
                         help="write the extended model JSON here (+ residual_model.yaml)")
@@ -130,9 +146,47 @@ def build_baseline(args, say):
     return model
 
 
+def run_selftest(args: argparse.Namespace) -> int:
+    from fdi_ros.core.discrepancy import scenarios as sc
+    from fdi_ros.core.discrepancy.selftest import run_selftest as selftest
+
+    def say(msg: str) -> None:
+        if not args.selftest_quiet:
+            print(msg, flush=True)
+
+    if args.n < 0 or (args.nulls is not None and args.nulls < 0):
+        raise ValueError("--n and --nulls must be >= 0")
+    say(f"self-test: {args.n} random cases + nulls, seed {args.seed}")
+    if DIESEL_CACHE.is_file():
+        from fdi_ros.core.meanvalue import SpeedDensityModel
+
+        baseline = SpeedDensityModel.from_dict(json.loads(DIESEL_CACHE.read_text()))
+    else:
+        say("identifying the diesel baseline on 3 fault-free plant runs")
+        baseline = sc.diesel_baseline()
+        DIESEL_CACHE.parent.mkdir(parents=True, exist_ok=True)
+        DIESEL_CACHE.write_text(json.dumps(baseline.to_dict()))
+    out = selftest(args.n, args.seed, n_null=args.nulls, baseline=baseline, progress=say)
+    path = Path(args.selftest_json)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=1, default=float))
+    acc = out["top1_effect_and_channel"]
+    pe = out["parameter_rel_error"]
+    say(f"top-1 effect and channel right: "
+        f"{'n/a' if acc is None else f'{100 * acc:.0f} %'} of {out['n_cases']}; "
+        f"parameter within {100 * pe['tolerance']:.0f} %: {pe['within_tolerance']}/{pe['of']}; "
+        f"false discoveries: {out['false_discoveries']}/{out['n_nulls']} nulls; "
+        f"ties containing the truth: {out['ties_containing_truth']} -> {path}")
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     from fdi_ros.core.discrepancy import CATALOGUE, DiscrepancyConfig, discover
     from fdi_ros.core.measured import load_measured
+
+    missing = [f"--{k}" for k in ("plant", "measured", "json") if not getattr(args, k)]
+    if missing:
+        raise ValueError(f"discrepancy needs {', '.join(missing)} (or: discrepancy selftest)")
 
     def say(msg: str) -> None:
         if not args.quiet:

@@ -1,10 +1,10 @@
 """Plant simulator node: publishes sensor blocks at the plant's pace and fault ground truth.
 
-The plant (a wing of :mod:`fdi_ros.plants`), its scenario (inputs over time, scheduled
-faults) and the block size come from :func:`fdi_ros.plants.make_runner`. A wall-clock timer
-advances plant time by ``realtime_factor`` x the elapsed wall time (0 = as fast as the graph takes it; a live change
-applies from that moment on, see :class:`fdi_ros.core.pacing.Pacer`); every block is published
-on ``/fdi/sensor_block`` and plant time on ``/clock`` (the other nodes may run on it with
+The plant (a wing of :mod:`fdi_ros.plants`), its scenario (inputs over time, scheduled faults) and
+the block size come from :func:`fdi_ros.plants.make_runner`. A wall-clock timer advances plant time
+by ``realtime_factor`` x the elapsed wall time (0 = as fast as the graph takes it; a live change
+applies from that moment on, see :class:`fdi_ros.core.pacing.Pacer`); every block is published on
+``/fdi/sensor_block`` and plant time on ``/clock`` (the other nodes may run on it with
 ``use_sim_time``; the plant itself keeps wall time). Every message is stamped in plant time.
 
 Faults are injected at run time on ``/fdi/fault_inject`` (reliable, volatile: default and

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
+
 from fdi_ros.core.discrepancy.context import ChannelContext, LeakSpec, build_contexts
 from fdi_ros.core.discrepancy.effects import CATALOGUE, EFFECT_TYPES, Effect
 from fdi_ros.core.discrepancy.engine import (
@@ -21,6 +23,7 @@ from fdi_ros.core.discrepancy.engine import (
     merge_results,
 )
 from fdi_ros.core.discrepancy.model import ExtendedModel, baseline_from_dict
+from fdi_ros.core.discrepancy.ties import input_gain_ties
 from fdi_ros.core.measured import Measured, segment_means
 
 __all__ = ["CATALOGUE", "EFFECT_TYPES", "ChannelContext", "DiscrepancyConfig",
@@ -41,6 +44,34 @@ def _tag_views(res: DiscrepancyResult) -> DiscrepancyResult:
 
 def discover(data: Measured, model, *, config: DiscrepancyConfig | None = None,
              progress=None) -> tuple[DiscrepancyResult, ExtendedModel]:
+    """Analyse ``data`` against ``model`` (:func:`_discover`), then name honest ties.
+
+    A gain error found on a channel is checked against gains on each of the model's input
+    sensors (:func:`.ties.input_gain_ties`); those the data cannot tell apart join the
+    finding's alternatives with the measurement that would separate them.
+    """
+    res, ext = _discover(data, model, config=config, progress=progress)
+    cfg = config or DiscrepancyConfig()
+    for i, f in enumerate(res.findings):
+        if f.effect != "gain_error" or "gain" not in f.params or "changes_s" in f.params:
+            continue
+        try:
+            tied = input_gain_ties(data, model, f.channel, float(f.params["gain"]),
+                                   f.params.get("onset_s"), alpha=cfg.alpha)
+        except (ValueError, KeyError, FloatingPointError, np.linalg.LinAlgError) as exc:
+            if progress:
+                progress(f"input-gain tie check on {f.channel} skipped: {exc}")
+            continue
+        if tied:
+            res.findings[i] = replace(f, alternatives=list(f.alternatives) + tied)
+            if progress:
+                progress(f"{f.label} on {f.channel} tied with "
+                         + ", ".join(a["label"] for a in tied))
+    return res, ext
+
+
+def _discover(data: Measured, model, *, config: DiscrepancyConfig | None = None,
+              progress=None) -> tuple[DiscrepancyResult, ExtendedModel]:
     """Analyse ``data`` against the baseline ``model``; return the result and extended model.
 
     Crank-angle resolved data and a model that predicts the pulsation (``model.orders``) are

@@ -204,6 +204,39 @@ def _fit_piecewise(r: np.ndarray, g: np.ndarray, t: np.ndarray, m: np.ndarray, *
     return [float(t[idx[c]]) for c in cuts[1:-1]], betas
 
 
+def _relative_change_point(y: np.ndarray, base: np.ndarray, t: np.ndarray, m: np.ndarray
+                           ) -> float | None:
+    """Onset of a gain change: the mean-shift change point of the relative residual.
+
+    A gain g multiplies the prediction, so ``y / yhat - 1`` steps from 0 to ``g - 1`` at the
+    onset whatever the load; on the absolute residual the step is proportional to the flow and
+    vanishes at idle, and a squared-error fit puts the onset where load returns. Samples with
+    a prediction below 5 % of its median magnitude are left out (the ratio is noise there);
+    each sample's ratio is clipped to the 1-99 % quantiles so a few outliers cannot place the
+    change. Returns None when the best split is the start of the record.
+    """
+    scale = float(np.median(np.abs(base[m]))) if m.any() else 0.0
+    mm = m & (np.abs(base) > 0.05 * scale)
+    if mm.sum() < 40:
+        return None
+    rr = np.full(y.shape, np.nan)
+    rr[mm] = y[mm] / base[mm] - 1.0
+    lo, hi = np.quantile(rr[mm], [0.01, 0.99])
+    rr = np.clip(rr, lo, hi)
+    # mean shift: split the demeaned ratio where the two means differ most (CUSUM statistic)
+    idx = np.flatnonzero(mm)
+    x = rr[idx] - rr[idx].mean()
+    n = idx.size
+    k = np.arange(1, n)
+    c = np.cumsum(x)[:-1]
+    stat = c ** 2 * n / (k * (n - k))
+    lo_k = max(20, n // 50)
+    stat[: lo_k - 1] = 0.0
+    stat[n - lo_k:] = 0.0
+    j = int(np.argmax(stat))
+    return float(t[idx[j + 1]]) if stat[j] > 0 else None
+
+
 def _piecewise_beta(t: np.ndarray, params: dict) -> np.ndarray:
     return np.asarray(params["values"])[np.searchsorted(params["changes_s"], t, side="right")]
 
@@ -321,6 +354,18 @@ class GainError(_StepError):
 
     def _with(self, base: np.ndarray, delta: np.ndarray) -> np.ndarray:
         return base * (1.0 + delta)
+
+    def fit(self, ctx: ChannelContext, base: np.ndarray, train: np.ndarray, *,
+            refine: bool = False) -> dict[str, Any]:
+        if not self.onset or self.piecewise:
+            return super().fit(ctx, base, train, refine=refine)
+        # A sensor gain from an onset on: the onset is the change point of the relative
+        # residual y / yhat - 1 (seen even at low load, where the absolute residual is small).
+        m = _train_mask(ctx, base, train)
+        t_on = _relative_change_point(ctx.y, base, ctx.t, m)
+        after = m & (ctx.t >= t_on) if t_on is not None else m
+        b, _ = _fit_scalar(ctx.y - base, base, ctx.t, after, onset=False, nonneg=False)
+        return {"gain": 1.0 + b, "onset_s": t_on}
 
 
 @dataclass(frozen=True)

@@ -305,20 +305,40 @@ def _one_se_choice(scored: list[tuple[Effect, Candidate]], alpha: float
                    ) -> tuple[Effect, Candidate]:
     """Lowest held-out MSE, or a special case of it within one standard error of it.
 
-    Only nested alternatives compete on parsimony (an always-on gain error vs the same gain
-    switching on at some time); effects with different physics compete on held-out error.
+    Nested alternatives compete on parsimony (an always-on gain error vs the same gain
+    switching on at some time), and a time-varying best (drift, piecewise in time) yields to a
+    dependence on a measured column within one standard error; other effects with different
+    physics compete on held-out error.
     """
     best = min(scored, key=lambda ec: np.nanmean(ec[1].mse_blocks))
+    tol = 1e-3 * float(np.nanmean(best[1].mse_blocks))
+
+    def within_one_se(c: Candidate) -> bool:
+        d = c.mse_blocks - best[1].mse_blocks
+        d = d[np.isfinite(d)]
+        return d.size >= 3 and d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size) + tol
+
+    if _time_varying(best[0]):
+        # a change over time is accepted only if no measured column explains the same
+        # residual: a dependence on a measured signal (few parameters, predicts new data)
+        # beats a drift or a piecewise-in-time fit within one standard error of it
+        measured = [(eff, c) for eff, c in scored if eff.id == "input_dependence"
+                    and eff.n_params <= best[0].n_params and c.p_adjusted < alpha
+                    and within_one_se(c)]
+        if measured:
+            return min(measured, key=lambda ec: np.nanmean(ec[1].mse_blocks))
     eligible = [best]
     for eff, c in scored:
         if not _nests(best[0], eff) or c.p_adjusted >= alpha:
             continue
-        d = c.mse_blocks - best[1].mse_blocks
-        d = d[np.isfinite(d)]
-        tol = 1e-3 * float(np.nanmean(best[1].mse_blocks))
-        if d.size >= 3 and d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size) + tol:
+        if within_one_se(c):
             eligible.append((eff, c))
     return min(eligible, key=lambda ec: (ec[0].n_params, np.nanmean(ec[1].mse_blocks)))
+
+
+def _time_varying(eff: Effect) -> bool:
+    """Drift, or an effect piecewise constant in time."""
+    return eff.id == "drift" or bool(getattr(eff, "piecewise", False))
 
 
 def _verdict(findings: list[Finding], table: list[Candidate]) -> tuple[str, str]:

@@ -81,6 +81,50 @@ def order_spectrum(alpha: np.ndarray, resid: np.ndarray, orders: np.ndarray) -> 
     return np.array(amp)
 
 
+def runner_up(result: DiscrepancyResult):
+    """(top candidate, runner-up candidate) of the top finding's step 1, or None.
+
+    The runner-up is the best candidate of another effect on the same channel (a variant of
+    the same effect, e.g. after an onset vs always on, is not a competing explanation).
+    """
+    if not result.findings:
+        return None
+    top = result.findings[0]
+    same = [c for c in result.candidates if c.channel == top.channel]
+    first = next((c for c in same if c.label == top.label), None)
+    second = next((c for c in same if c.effect != top.effect), None)
+    if first is None or second is None or first.mse_blocks.size != second.mse_blocks.size:
+        return None
+    return first, second
+
+
+def _evidence_figure(plt, out: Path, result: DiscrepancyResult):
+    pair = runner_up(result)
+    if pair is None:
+        return None
+    a, b = pair
+    blocks = np.arange(a.mse_blocks.size)
+    fig, ax = plt.subplots(2, 1, figsize=(10, 5.5), sharex=True)
+    ax[0].plot(blocks, np.sqrt(a.mse_blocks), "o-", ms=3, label=f"top: {a.label} "
+               f"({a.gain_pct:.1f} %, p_adj {a.p_adjusted:.2g})")
+    ax[0].plot(blocks, np.sqrt(b.mse_blocks), "s-", ms=3, label=f"runner-up: {b.label} "
+               f"({b.gain_pct:.1f} %, p_adj {b.p_adjusted:.2g})")
+    ax[0].set_ylabel(f"held-out RMSE ({a.channel})")
+    ax[0].legend(fontsize=8)
+    d = b.mse_blocks - a.mse_blocks
+    ax[1].bar(blocks, d, color=["C2" if v > 0 else "C3" for v in d])
+    ax[1].axhline(0, color="k", lw=0.5)
+    ax[1].set_ylabel("MSE runner-up - top")
+    ax[1].set_xlabel("held-out block (in time order)")
+    ax[0].set_title("Evidence: the top finding against the best other effect, block by block")
+    fig.tight_layout()
+    fig.savefig(out / "evidence_top_vs_runner_up.png", dpi=90)
+    plt.close(fig)
+    return ("evidence_top_vs_runner_up.png",
+            f"Evidence: {a.label} against the runner-up {b.label} on held-out blocks "
+            f"(green: the top finding predicts the block better)")
+
+
 def write_report(out_dir: str | Path, data: Measured, baseline, extended: ExtendedModel,
                  result: DiscrepancyResult, *, title: str = "Discrepancy analysis") -> Path:
     """Write ``index.md`` and the PNGs into ``out_dir``; returns the Markdown path."""
@@ -205,7 +249,11 @@ def write_report(out_dir: str | Path, data: Measured, baseline, extended: Extend
         ax.set_title("Residual spectrum (no crank-angle data: by frequency)")
         ax.legend(fontsize=8)
         _save(fig, out, "residual_spectrum.png", "Residual spectrum by frequency", figs)
-    # 5. candidate ranking
+    # 5. evidence for the top finding against its runner-up, block by block
+    ev = _evidence_figure(plt, out, result)
+    if ev:
+        figs.append(ev)
+    # 6. candidate ranking
     cands = result.candidates[:15]
     if cands:
         fig, ax = plt.subplots(figsize=(8, 0.35 * len(cands) + 1.2))
@@ -233,6 +281,11 @@ def write_report(out_dir: str | Path, data: Measured, baseline, extended: Extend
         lines.append("| - | none significant | | | | | | |")
     for f in result.findings:
         for a in f.alternatives:
+            if "separate_by" in a:  # a tie with another sensor: why, and what separates
+                lines.append(f"\nFinding {f.rank} ({f.label} on {f.channel}) is **tied** with "
+                             f"**{a['label']}** ({_fmt_params(a['params'])}): {a['why']}. "
+                             f"Would separate them: {a['separate_by']}.")
+                continue
             lines.append(f"\nFinding {f.rank} ({f.label}) is indistinguishable on the held-out "
                          f"blocks from **{a['label']}** (gain {a['gain_pct']:.1f} %): "
                          f"{_fmt_params(a['params'])}.")

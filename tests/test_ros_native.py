@@ -86,7 +86,8 @@ def plant():
     node.create_subscription(FaultEvent, "/fdi/fault_truth", seen["truth"].append, LATCHED_QOS)
     node.create_subscription(DiagnosticArray, "/diagnostics", seen["diag"].append, 50)
     node.create_subscription(Clock, "/clock", seen["clock"].append, 10)
-    proc = spawn([str(executable("plant_node")), "--ros-args", "-r", "__node:=fdi_plant"])
+    proc = spawn([str(executable("plant_node")), "--ros-args", "-r", "__node:=fdi_plant",
+                  "-p", "plant:=diesel"])
     ros.seen, ros.proc = seen, proc
     try:
         ros.spin_until(lambda: len(seen["blocks"]) >= 3, 30.0, "sensor blocks", [proc])
@@ -263,7 +264,8 @@ def test_every_node_describes_its_own_parameters(tmp_path):
              list: ParameterType.PARAMETER_STRING_ARRAY}
     bag = ROOT / "bags" / "diesel_leak_5mm_features"
     nodes = {
-        "fdi_preprocessor": ("preprocessor_node", preprocessor_node.PARAMS, []),
+        "fdi_preprocessor": ("preprocessor_node", preprocessor_node.PARAMS,
+                             ["-p", "plant:=diesel"]),
         "fdi_model_x": ("residual_node", residual_node.PARAMS, []),
         "fdi_recorder": ("recorder_node", recorder_node.PARAMS,
                          ["-p", f"bag:={tmp_path / 'bag'}"]),

@@ -147,8 +147,8 @@ def build_baseline(args, say):
 
 
 def run_selftest(args: argparse.Namespace) -> int:
-    from fdi_ros.core.discrepancy import scenarios as sc
-    from fdi_ros.core.discrepancy.selftest import run_selftest as selftest
+    from fdi_ros.plants.diesel import discrepancy_scenarios as sc
+    from fdi_ros.plants.diesel.discrepancy_selftest import run_selftest as selftest
 
     def say(msg: str) -> None:
         if not args.selftest_quiet:

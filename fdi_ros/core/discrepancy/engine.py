@@ -538,6 +538,17 @@ def _grow_chain(c: _Channel, cfg: DiscrepancyConfig, n_channels: int,
     return chain, nit
 
 
+MIN_GAIN_EFFECT = 0.01  # relevance floor of a gain error: |gain - 1| [1]
+
+
+def _gain_magnitude(params: dict[str, Any]) -> float:
+    """Largest |gain - 1| of a fitted gain error (constant, from an onset, or piecewise)."""
+    vals = [abs(float(v)) for v in params.get("values", ())]
+    if "gain" in params:
+        vals.append(abs(float(params["gain"]) - 1.0))
+    return max(vals, default=0.0)
+
+
 def _refit(c: _Channel, chain: list[Effect], findings: list[Finding], info: dict[str, Any]
            ) -> list[tuple[Effect, dict[str, Any]]]:
     """The extension as saved: the chain refitted on every valid sample; the channel's
@@ -551,6 +562,12 @@ def _refit(c: _Channel, chain: list[Effect], findings: list[Finding], info: dict
     for f_i, f in enumerate(findings):
         if f.channel == c.name and not f.params:
             findings[f_i] = Finding(**{**f.__dict__, "params": params[f.step - 1]})
+    # A gain error below the relevance floor (every piece within MIN_GAIN_EFFECT of 1, the
+    # order of a sensor's own accuracy class) is a real but negligible wander of the model,
+    # not a deficiency worth naming: it stays in the candidate table, not among the findings.
+    findings[:] = [f for f in findings
+                   if not (f.channel == c.name and f.effect == "gain_error"
+                           and _gain_magnitude(f.params) < MIN_GAIN_EFFECT)]
     final = apply_chain(ctx, fitted)
     info["rmse_extended_in_sample"] = float(np.sqrt(np.mean((ctx.y - final)[c.ok] ** 2)))
     return fitted

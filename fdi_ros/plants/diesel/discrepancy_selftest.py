@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fdi_ros.core.discrepancy import scenarios as sc
+from fdi_ros.plants.diesel import discrepancy_scenarios as sc
 
 # Sizes the README states detectable on 60 s of 20 deg CA diesel data (maf in kg/h): the
 # draw is log-uniform over each range, with a random sign where the effect has one.

@@ -52,7 +52,8 @@ def _own_temp_dirs() -> set[str]:
 
 
 @pytest.mark.parametrize("rate", [1.0, pytest.param(4.0, marks=pytest.mark.xfail(
-    strict=False, reason="the supervisor still counts T0 in arrival time, not plant time"))])
+    strict=False, reason="at 4x on 2 cores the graph cannot keep up: the supervisor reports "
+    "overload and skips segments (no other isolation), so the isolation is not reached"))])
 def test_replay_ends_by_itself_with_the_offline_isolation(demo_bag, tmp_path, rate):
     bag, offline = demo_bag
     before = _own_temp_dirs()

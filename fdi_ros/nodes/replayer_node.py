@@ -66,11 +66,10 @@ class ReplayerNode(Node):
 
         self._Header = Header
         self._end_pub = self.create_publisher(Header, END_OF_DATA_TOPIC, LATCHED_QOS)
-        self._last_ns = 0
+        self._last_ns = 0  # bag time of the last message published [ns]
         self._it = bagio.read(path, list(self._pubs), raw=True)
         self._next: tuple | None = None
         self._pacer = Pacer(float(self.get_parameter("rate").value))
-        self._last_s = 0.0  # bag time of the last message published [s]
         self.add_post_set_parameters_callback(self._on_params_set)
         self._start = time.monotonic() + float(self.get_parameter("start_delay_s").value)
         self._min_subs = int(self.get_parameter("min_subscribers").value)
@@ -83,8 +82,9 @@ class ReplayerNode(Node):
     def _on_params_set(self, params: list[Any]) -> None:
         for q in params:
             if q.name == "rate":
-                self._pacer.set_rate(float(q.value), time.monotonic(), self._last_s)
-                self.get_logger().info(f"rate {q.value:g} from bag time {self._last_s:.3f} s")
+                last_s = self._last_ns * 1e-9
+                self._pacer.set_rate(float(q.value), time.monotonic(), last_s)
+                self.get_logger().info(f"rate {q.value:g} from bag time {last_s:.3f} s")
 
     def _tick(self) -> None:
         if self.done or time.monotonic() < self._start:
@@ -119,7 +119,6 @@ class ReplayerNode(Node):
                 c.clock.sec, c.clock.nanosec = divmod(t_ns, 1_000_000_000)
                 self._clock_pub.publish(c)
             self.count += 1
-            self._last_s = t_ns * 1e-9
             self._last_ns = t_ns
             self._next = None
 

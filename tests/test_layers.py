@@ -126,6 +126,16 @@ def test_core_imports_no_plant_node_command_or_rclpy():
     assert bad == []
 
 
+def test_plants_import_no_command_or_node():
+    """Wings (bank builders, identification) stand below the CLI and the nodes."""
+    mods = _modules()
+    known = set(mods)
+    bad = [f"{m} -> {i}" for m, p in mods.items() if m.startswith("fdi_ros.plants")
+           for i in _imports(m, p, known)
+           if i.startswith(("fdi_ros.commands", "fdi_ros.nodes", "fdi_ros.cli"))]
+    assert bad == []
+
+
 def _string_literals(path: Path) -> list[tuple[int, str]]:
     tree = ast.parse(path.read_text())
     docs = set()

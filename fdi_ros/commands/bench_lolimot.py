@@ -15,7 +15,7 @@ HELP = "LOLIMOT vs scikit-learn (gradient boosting / MLP): held-out NRMSE and tr
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from fdi_ros.commands.identify import DEFAULT_IDENT
+    from fdi_ros.plants.diesel.identify import DEFAULT_IDENT
 
     parser.add_argument("--data", default=DEFAULT_IDENT,
                         help=f"identification data: scenario, bag or CSV "
@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from fdi_ros.commands.identify import load_features
+    from fdi_ros.plants.diesel.identify import load_features
     from fdi_ros.plants.diesel.reference import (
         AMPLITUDE_OF,
         INPUTS,

@@ -9,29 +9,21 @@ paper's Figs. 5, 7-10.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
-import sys
-from pathlib import Path
 
 COMMAND = ("identify",)
 HELP = "identify the diesel reference models (LOLIMOT, look-up tables) from a bag, CSV or scenario"
 
-DEFAULT_IDENT = "config/scenarios/diesel_ident.yaml"
-DEFAULT_DRIVE = "config/scenarios/diesel_drive.yaml"
-CACHE_DIR = Path("build/cache/features")
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plant", default="diesel", choices=["diesel"],
                         help="plant configuration (only the diesel plant has these models)")
-    parser.add_argument("--data", default=DEFAULT_IDENT,
+    parser.add_argument("--data", default=None,
                         help="identification data: scenario YAML, bag directory or CSV "
-                             f"(default {DEFAULT_IDENT})")
+                             "(default: the wing's identification scenario)")
     parser.add_argument("--mapping", default=None, help="mapping YAML for a CSV")
-    parser.add_argument("--fault-free", default=DEFAULT_DRIVE,
+    parser.add_argument("--fault-free", default=None,
                         help="fault-free transient data for the thresholds (scenario, bag or "
-                             "CSV; 'none' to skip)")
+                             "CSV; 'none' to skip; default: the wing's driving scenario)")
     parser.add_argument("--out", default="build/models/diesel", help="output model directory")
     parser.add_argument("--figures", default=None, help="directory for PNG figures")
     parser.add_argument("--seed", type=int, default=0, help="simulation/split seed")
@@ -55,179 +47,8 @@ def _floats(text: str | None) -> tuple[float, ...]:
         raise ValueError(f"breakpoints must be comma-separated numbers, got {text!r}") from None
 
 
-def _blocks_from_csv(path: Path, mapping):
-    import numpy as np
-
-    from fdi_ros.core.measured import load_csv
-    from fdi_ros.core.types import SampleBlock
-
-    m = load_csv(path, mapping)
-    if m.alpha is None:
-        raise ValueError(f"{path}: the diesel features need a crank-angle column 'alpha'")
-    names = tuple(k for k in m.signals if k in ("n", "p2", "T2", "maf", "p_amb", "T_amb"))
-    skipped = m.skipped(names)
-    if skipped["samples"]:
-        per = ", ".join(f"{k} in {n}" for n, k in skipped["by_signal"].items())
-        print(f"fdi-ros identify: {path}: {skipped['samples']} of {skipped['of']} samples with "
-              f"missing or non-finite values ({per}); the segments holding them are skipped",
-              file=sys.stderr, flush=True)
-    vals = np.vstack([m.signals[k] for k in names])
-    return [SampleBlock(plant="diesel", index=0, t=m.t, alpha=m.alpha, channels=names,
-                        units=tuple(m.units[k] for k in names), values=vals)]
-
-
-def features_from_blocks(blocks) -> list:
-    """Crank-synchronous features of consecutive blocks (segments may straddle blocks)."""
-    from fdi_ros.core.crank import CrankSegmenter
-    from fdi_ros.plants.diesel.plant import DieselParams
-
-    p = DieselParams()  # the engine's displacement and gas constant, one source
-    seg = CrankSegmenter(V_D=p.V_D, R=p.R)
-    out = []
-    for b in blocks:
-        out.extend(seg.push_table(b).to_features())
-    return out
-
-
-def simulate_features(scenario, *, seed: int, progress: bool = False, faults=None,
-                      duration_s: float | None = None):
-    """Simulate a diesel scenario (path or Scenario; ``faults`` replaces its fault events) and
-    return (features, fault truth events)."""
-    import dataclasses
-
-    from fdi_ros.plants.diesel.scenario import load_scenario, simulate
-
-    sc = load_scenario(scenario)
-    if faults is not None:
-        sc = dataclasses.replace(sc, faults=tuple(faults))
-    if duration_s is not None:
-        sc = dataclasses.replace(sc, duration_s=min(float(duration_s), sc.duration_s))
-    sim = simulate(sc, seed=seed, keep_blocks=False, progress=progress)
-    if sim.features is None:
-        raise ValueError("the simulation produced no features")
-    return sim.features.to_features(), list(sim.faults)
-
-
-def load_features(source, *, seed: int = 0, mapping=None, cache: bool = True) -> list:
-    """Feature vectors of a scenario (simulated, cached in build/), bag or CSV."""
-    path = Path(source)
-    if not path.exists():
-        raise FileNotFoundError(f"no data at {path}")
-    if path.suffix in (".yaml", ".yml"):
-        key = hashlib.sha1(path.read_bytes() + f"seed={seed}".encode()).hexdigest()[:16]
-        cached = CACHE_DIR / f"{path.stem}_{seed}_{key}.npz"
-        if cache and cached.exists():
-            return _read_cache(cached)
-        feats, _ = simulate_features(path, seed=seed)
-        if cache:
-            _write_cache(cached, feats)
-        return feats
-    if path.is_dir():
-        from fdi_ros import bag
-
-        tops = bag.topics(path)
-        if "/fdi/features" in tops:
-            return bag.read_features(path)
-        if "/fdi/sensor_block" in tops:
-            return features_from_blocks(bag.read_blocks(path))
-        raise ValueError(f"{path}: bag has neither /fdi/features nor /fdi/sensor_block")
-    if path.suffix.lower() == ".csv":
-        return features_from_blocks(_blocks_from_csv(path, mapping))
-    raise ValueError(f"{path}: expected a scenario .yaml, a bag directory or a .csv")
-
-
-def _write_cache(path: Path, feats) -> None:
-    import numpy as np
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not feats:
-        return
-    names = feats[0].names
-    if any(f.names != names for f in feats):
-        return  # heterogeneous vectors: not worth caching
-    np.savez_compressed(
-        path, names=np.array(names), units=np.array(feats[0].units),
-        values=np.vstack([f.values for f in feats]),
-        meta=np.array([[f.index, f.t_start, f.t_end, f.alpha_start] for f in feats]),
-        valid=np.array([f.valid for f in feats]), status=np.array([f.status for f in feats]),
-        plant=np.array(feats[0].plant))
-
-
-def _read_cache(path: Path) -> list:
-    import numpy as np
-
-    from fdi_ros.core.types import FeatureVector
-
-    with np.load(path, allow_pickle=False) as z:
-        names = tuple(str(x) for x in z["names"])
-        units = tuple(str(x) for x in z["units"])
-        plant = str(z["plant"])
-        return [FeatureVector(plant=plant, index=int(m[0]), t_start=float(m[1]),
-                              t_end=float(m[2]), alpha_start=float(m[3]), valid=bool(ok),
-                              status=str(st), names=names, units=units, values=v)
-                for v, m, ok, st in zip(z["values"], z["meta"], z["valid"], z["status"])]
-
-
-def calibrate_from_features(mset, feats, **kw):
-    """Fault-free residual statistics -> SymptomConfig (thresholds, storage correction, gate);
-    also returns the number of quasi-stationary segments used."""
-    from fdi_ros.plants.diesel.symptoms import calibrate_from_fault_free, stream_residuals
-
-    cfg = calibrate_from_fault_free(mset, feats, **kw)
-    n_used = sum(rv.valid for rv in stream_residuals(mset, feats, config=cfg))
-    return cfg, n_used
-
-
-def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
-                 threshold_seed: int = 101, mapping=None, config=None, progress: bool = True,
-                 figures=None):
-    """Identify, save, calibrate the fault-free thresholds; returns (result, symptom config or
-    None, report dict)."""
-    from fdi_ros.plants.diesel.reference import (
-        INPUTS,
-        OUTPUTS,
-        IdentificationConfig,
-        feature_table,
-        identify_reference_models,
-    )
-    from fdi_ros.plants.diesel.symptoms import THRESHOLDS_FILE
-
-    cfg = config or IdentificationConfig(seed=seed)
-    feats = load_features(data_source, seed=seed, mapping=mapping)
-    with_p2 = bool(feats) and "p2" in feats[0].names
-    data = feature_table(feats, names=INPUTS + OUTPUTS + (("p2",) if with_p2 else ()))
-    res = identify_reference_models(data, config=cfg, progress=progress)
-    out = Path(out)
-    res.models.save(out)
-    report = {"out": str(out), "n_segments": int(data["n"].size), "n_train": res.n_train,
-              "n_val": res.n_val, "n_test": res.n_test, "train_s": round(res.train_s, 3),
-              "eta_storage_coeff": res.models.info.get("storage_coeff", 0.0),
-              "models": {k: {"n_models": {n: r.n_models for n, r in res.results.items()
-                                          if n == k or n.startswith(k + "_")},
-                             "nrmse_test": round(res.nrmse_test[k], 4),
-                             "nrmse_test_lut": round(res.nrmse_test_lut[k], 4),
-                             "lut_vs_model_rmse": res.lut_error[k]["rmse"]}
-                         for k in res.nrmse_test}}
-    import numpy as np
-
-    from fdi_ros.plants.diesel.reference import table_grid_errors
-
-    X = np.column_stack([data[k] for k in INPUTS])
-    report["table_vs_model_rmse"] = table_grid_errors(res.models, X[:: max(1, len(X) // 4000)])
-    scfg = None
-    if fault_free and str(fault_free).lower() != "none":
-        ff = load_features(fault_free, seed=threshold_seed, mapping=mapping)
-        scfg, n_used = calibrate_from_features(res.models, ff)
-        (out / THRESHOLDS_FILE).write_text(json.dumps(scfg.to_dict(), indent=1))
-        report["thresholds"] = dict(zip(scfg.names, scfg.threshold))
-        report["storage_coeff"] = scfg.storage_coeff
-        report["threshold_segments"] = int(n_used)
-    if figures:
-        report["figures"] = [str(p) for p in identification_figures(res, data, figures)]
-    return res, scfg, report
-
-
 def run(args: argparse.Namespace) -> int:
+    from fdi_ros.plants.diesel.identify import DEFAULT_DRIVE, DEFAULT_IDENT, build_models
     from fdi_ros.plants.diesel.reference import IdentificationConfig
 
     kw = {}
@@ -235,8 +56,10 @@ def run(args: argparse.Namespace) -> int:
         kw["max_models"] = args.max_models
     cfg = IdentificationConfig(seed=args.seed, lut_n=_floats(args.lut_n),
                                lut_rho2=_floats(args.lut_rho2), **kw)
-    res, _, report = build_models(args.data, out=args.out, seed=args.seed,
-                                  fault_free=args.fault_free, threshold_seed=args.threshold_seed,
+    data = DEFAULT_IDENT if args.data is None else args.data
+    fault_free = DEFAULT_DRIVE if args.fault_free is None else args.fault_free
+    res, _, report = build_models(data, out=args.out, seed=args.seed,
+                                  fault_free=fault_free, threshold_seed=args.threshold_seed,
                                   mapping=args.mapping, config=cfg,
                                   progress=not args.no_progress, figures=args.figures)
     if args.json:
@@ -250,80 +73,3 @@ def run(args: argparse.Namespace) -> int:
             print(f"  {k:10s} models={nm:5s}  held-out NRMSE={v['nrmse_test']:.4f}"
                   f"  (table {v['nrmse_test_lut']:.4f})")
     return 0
-
-def identification_figures(res, data, outdir) -> list[Path]:
-    """Partition with centres (paper Fig. 5), data distribution (Fig. 7) and each model's map
-    against the data points (Figs. 8-10), plus held-out predicted-vs-measured."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-    from matplotlib.patches import Rectangle
-
-    from fdi_ros.plants.diesel.reference import INPUTS, UNITS, split_blocks
-
-    outdir = Path(outdir)
-    outdir.mkdir(parents=True, exist_ok=True)
-    paths = []
-    X = np.column_stack([data[k] for k in INPUTS])
-    _, _, te = split_blocks(X.shape[0], block=res.models.info["config"]["block"],
-                            seed=res.models.info["config"]["seed"])
-    mset = res.models
-    # Fig. 5 + 7: partition of the eta_v model, centres, data points.
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
-    for ax, k in zip(axes, ("eta_v", "maf_amp")):
-        m = mset.models[k]
-        ax.plot(X[:, 0], X[:, 1], ".", ms=1, color="0.7", label="data points")
-        lo, hi = m.cell_bounds
-        for a, b in zip(lo, hi):
-            ax.add_patch(Rectangle(a, *(b - a), fill=False, lw=1.2, color="C0"))
-        c = m.centres
-        ax.plot(c[:, 0], c[:, 1], "x", color="C3", ms=8, mew=2, label="local model centres")
-        ax.set_xlabel(f"engine speed n [{UNITS['n']}]")
-        ax.set_ylabel(f"boost density rho2 [{UNITS['rho2']}]")
-        ax.set_title(f"LOLIMOT partition of {k}: {m.n_models} local models")
-        ax.legend(loc="upper left", fontsize=8)
-    fig.tight_layout()
-    paths.append(outdir / "fig05_partition.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
-    # Figs. 8-10: maps (look-up table over the identified region) against the data points.
-    for k in mset.outputs:
-        tab = mset.tables[k if k in mset.tables else f"{k}_cos"]
-        bn, br = tab.breakpoints
-        nn, rr = np.meshgrid(np.linspace(bn[0], bn[-1], 60), np.linspace(br[0], br[-1], 50))
-        P = np.column_stack([nn.ravel(), rr.ravel()])
-        ref, ok = mset.predict(P[:, 0], P[:, 1])
-        v = ref[k]
-        y = data[k]
-        if k in mset.phase_centre:
-            from fdi_ros.plants.diesel.reference import wrap_phase
-            y = wrap_phase(y, mset.phase_centre[k])
-            v = wrap_phase(v, mset.phase_centre[k])
-        V = np.where(ok, v, np.nan).reshape(nn.shape)
-        fig = plt.figure(figsize=(13, 5))
-        ax = fig.add_subplot(1, 2, 1, projection="3d")
-        ax.plot_surface(nn, rr, np.ma.masked_invalid(V), cmap="viridis", alpha=0.7,
-                        linewidth=0)
-        sub = np.arange(0, X.shape[0], max(1, X.shape[0] // 1500))
-        ax.scatter(X[sub, 0], X[sub, 1], y[sub], s=2, color="k", label="data points")
-        ax.set_xlabel("n [rpm]")
-        ax.set_ylabel("rho2 [kg/m^3]")
-        ax.set_zlabel(f"{k} [{UNITS[k]}]")
-        ax.set_title(f"reference model {k} (ECU table) vs data")
-        ax2 = fig.add_subplot(1, 2, 2)
-        yp = mset.predict(X[te, 0], X[te, 1], use_tables=False)[0][k]
-        if k in mset.phase_centre:
-            yp = wrap_phase(yp, mset.phase_centre[k])
-        ax2.plot(y[te], yp, ".", ms=2)
-        lim = [np.nanmin(y[te]), np.nanmax(y[te])]
-        ax2.plot(lim, lim, "k--", lw=1)
-        ax2.set_xlabel(f"measured {k} [{UNITS[k]}]")
-        ax2.set_ylabel(f"model {k} [{UNITS[k]}]")
-        ax2.set_title(f"held-out segments: NRMSE = {res.nrmse_test[k]:.3f}")
-        fig.tight_layout()
-        paths.append(outdir / f"map_{k}.png")
-        fig.savefig(paths[-1], dpi=110)
-        plt.close(fig)
-    return paths

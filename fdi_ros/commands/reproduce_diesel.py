@@ -144,7 +144,7 @@ def count_false_symptoms(states) -> dict:
 
 
 def _load_or_build(args, progress: bool):
-    from fdi_ros.commands.identify import DEFAULT_DRIVE, DEFAULT_IDENT, build_models
+    from fdi_ros.plants.diesel.identify import DEFAULT_DRIVE, DEFAULT_IDENT, build_models
     from fdi_ros.plants.diesel.reference import ReferenceModelSet
     from fdi_ros.plants.diesel.symptoms import load_symptom_config
 
@@ -161,7 +161,7 @@ def _load_or_build(args, progress: bool):
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from fdi_ros.commands.identify import DEFAULT_DRIVE, load_features
+    from fdi_ros.plants.diesel.identify import DEFAULT_DRIVE, load_features
     from fdi_ros.plants.diesel.symptoms import (
         PAPER_TABLE,
         isolate,
@@ -275,7 +275,7 @@ def compare_hypotheses(mset, scfg, models_dir, *, seed: int, progress: bool,
     at 0.7 times that size, on the drive with another seed and at the steady paper point."""
     import numpy as np
 
-    from fdi_ros.commands.identify import DEFAULT_DRIVE, simulate_features
+    from fdi_ros.plants.diesel.identify import DEFAULT_DRIVE, simulate_features
     from fdi_ros.plants.diesel.symptoms import identify_fault_hypothesis
 
     sizes = {"crankcase_vent_open": 10.0, "egr_leaky": 4.0}

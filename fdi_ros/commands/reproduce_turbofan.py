@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
         if stale:
             print(f"{model_path}: {why}; training again", file=sys.stderr)
     if args.retrain or stale or not model_path.exists():
-        from fdi_ros.commands.train_turbofan import train
+        from fdi_ros.plants.turbofan.train import train
 
         gm, _, _ = train(settings, out=model_path, progress=not args.no_progress)
         report["training"] = gm.report.as_dict()

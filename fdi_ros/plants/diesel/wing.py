@@ -155,7 +155,7 @@ def build_bank(cfg: GraphConfig, *, progress: bool = True, seed: int = 0,
     todo = _missing(cfg)
     if not todo:
         return []
-    from fdi_ros.commands.identify import (
+    from fdi_ros.plants.diesel.identify import (
         DEFAULT_DRIVE,
         DEFAULT_IDENT,
         build_models,

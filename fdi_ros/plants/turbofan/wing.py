@@ -49,8 +49,8 @@ def build_bank(cfg: GraphConfig, *, progress: bool = True, seed: int = 0,
             todo.append(e.id)
     if not todo:
         return []
-    from fdi_ros.commands.train_turbofan import train
     from fdi_ros.plants.turbofan.settings import load_settings
+    from fdi_ros.plants.turbofan.train import train
 
     t0 = time.perf_counter()
     log(f"[bank] training the turbofan's Takagi-Sugeno node models (for {', '.join(todo)})")

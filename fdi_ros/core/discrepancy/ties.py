@@ -13,6 +13,9 @@ which measurement would.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 from scipy import stats
 from scipy.optimize import minimize_scalar
@@ -62,10 +65,10 @@ def _block_mse(e2: np.ndarray, t: np.ndarray, block_s: float) -> np.ndarray:
     return (s / np.maximum(c, 1))[c >= 10]
 
 
-def input_gain_ties(data: Measured, model, channel: str, gain: float, onset_s: float | None,
+def input_gain_ties(data: Measured, model: Any, channel: str, gain: float, onset_s: float | None,
                     *, alpha: float = 0.05, block_s: float = 5.0,
                     bounds: tuple[float, float] = (0.6, 1.6),
-                    max_samples: int = 40_000) -> list[dict]:
+                    max_samples: int = 40_000) -> list[dict[str, Any]]:
     """Input-sensor gains that explain the data as well as ``gain`` on ``channel``.
 
     Long records are judged on ``max_samples`` samples in contiguous windows spread over
@@ -91,10 +94,12 @@ def input_gain_ties(data: Measured, model, channel: str, gain: float, onset_s: f
         if not np.isfinite(x).any() or np.nanstd(x[after]) == 0:
             continue
 
-        def resid(k: float, name=name) -> np.ndarray:
-            return y - np.asarray(model.predict(_scaled(data, name, k, after))[channel], float)
+        def resid(k: float, name: str = name) -> np.ndarray:
+            e: np.ndarray = y - np.asarray(model.predict(_scaled(data, name, k, after))[channel],
+                                           float)
+            return e
 
-        def cost(k: float, resid=resid) -> float:
+        def cost(k: float, resid: Callable[[float], np.ndarray] = resid) -> float:
             e = resid(k)[after]
             e = e[np.isfinite(e)]
             # samples the scaled input pushes outside the model's region count as misses
@@ -147,3 +152,31 @@ def input_gain_ties(data: Measured, model, channel: str, gain: float, onset_s: f
                             f"flow relation across another component that uses {name})"),
         })
     return out
+
+
+def tie_reason(choice: Any, other: Any, model_channel: str) -> dict[str, str]:
+    """Why two candidates (``choice``, ``other``: objects with ``effect``, ``label`` and
+    ``channel``) explain ``model_channel``'s residual alike, and which measurement would tell
+    them apart."""
+    a, b = choice.channel, other.channel
+    lag_pair = {choice.effect, other.effect} == {"sensor_lag", "dead_time"}
+    if a != b:
+        sensors = [s for s in (a, b) if s != model_channel]
+        why = (f"{other.label} ({b}) moves the {model_channel} residual as {choice.label} "
+               f"({a}) does: the model predicts {model_channel} from "
+               f"{' and '.join(sensors)}, and one residual cannot prove which signal is "
+               "wrong (held-out error within one standard error)")
+        sep = (f"a second relation that uses {a} but not {b}, or {b} but not {a} (a redundant "
+               f"sensor, or a model of another component that reads one of them)")
+    elif lag_pair:
+        why = (f"on {a} a first-order lag tau and a dead time d = tau both make a slowly "
+               "varying reading trail the truth by about tau dx/dt; they differ only in "
+               "faster content")
+        sep = (f"the crank-angle pulsation of {a} (a lag damps it, a dead time shifts its "
+               "phase in proportion to speed) or steeper transients")
+    else:
+        why = (f"{other.label} and {choice.label} fit the held-out blocks within one standard "
+               "error of each other")
+        sep = ("data that excite the two differently: a wider operating range, other "
+               "transients, or a measured column that follows one of them")
+    return {"why": why, "separate_by": sep}

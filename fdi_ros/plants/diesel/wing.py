@@ -20,7 +20,7 @@ from fdi_ros.core.graphconfig import GraphConfig
 from fdi_ros.core.plant_api import FaultQueue
 from fdi_ros.core.types import FaultEvent, FeatureVector, SampleBlock
 from fdi_ros.plants import ROOT, Wing
-from fdi_ros.plants.diesel.plant import FAULT_IDS, FAULT_UNITS, DieselParams
+from fdi_ros.plants.diesel.plant import FAULT_IDS, FAULT_UNITS, crank_segmenter
 
 DEFAULT_SCENARIO = ROOT / "config" / "scenarios" / "diesel_paper_op.yaml"
 # Size at which each fault-hypothesis model is identified (mid-range of the scenarios; the
@@ -83,12 +83,7 @@ class DieselPreprocessor:
     """
 
     def __init__(self, **kwargs: Any) -> None:
-        from fdi_ros.core.crank import CrankSegmenter
-
-        p = DieselParams()
-        kwargs.setdefault("V_D", p.V_D)
-        kwargs.setdefault("R", p.R)
-        self.seg = CrankSegmenter(**kwargs)
+        self.seg = crank_segmenter(None, **kwargs)
 
     def push(self, block: SampleBlock) -> list[FeatureVector]:
         return self.seg.push(block)

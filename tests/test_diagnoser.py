@@ -7,45 +7,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from toy_bank import BANK, ToyOffset, toy_config
 
 from fdi_ros.core.diagnoser import Diagnoser, diagnose_offline
 from fdi_ros.core.fst import FaultSymptomTable
 from fdi_ros.core.graphconfig import load_graph_config
-from fdi_ros.core.residual_models import register_residual_model
 from fdi_ros.core.types import FeatureVector, ResidualVector
 
-CONFIG = """
-fdi_graph:
-  plant: toy
-  t0_s: 0.5
-  bank:
-    - {id: nominal, faults: [], model: {type: toy_offset, offset: 0.0}}
-    - {id: a, faults: [a], model: {type: toy_offset, offset: 1.0}}
-    - {id: b, faults: [b], model: {type: toy_offset, offset: -1.0}}
-    - {id: a+b, faults: [a, b], model: {type: toy_offset, offset: 3.0}}
-fdi_plant:
-  ros__parameters: {plant: toy}
-"""
-
-
-class ToyOffset:
-    """Residual y - offset of one feature 'y'; norm = |residual|."""
-
-    def __init__(self, offset: float, model_id: str) -> None:
-        self.offset, self.model_id, self.resets = offset, model_id, 0
-
-    def residuals(self, fv: FeatureVector) -> ResidualVector:
-        r = fv.get("y") - self.offset
-        return ResidualVector(self.model_id, fv.index, fv.t_end, fv.valid, fv.status, ("r",),
-                              ("1",), np.array([r]), abs(r))
-
-    def reset(self) -> None:
-        self.resets += 1
-
-
-@register_residual_model("toy_offset")
-def _toy(spec: dict, *, base_dir: Path, model_id: str) -> ToyOffset:
-    return ToyOffset(float(spec["offset"]), model_id)
+CONFIG = toy_config(0.5, (*BANK, ("a+b", ("a", "b"), 3.0)),
+                    tail="fdi_plant:\n  ros__parameters: {plant: toy}\n")
 
 
 def _features(ys: list[float], dt: float = 0.1) -> list[FeatureVector]:

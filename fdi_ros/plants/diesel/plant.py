@@ -788,20 +788,23 @@ def _line(beta_l: np.ndarray, z0) -> np.ndarray:
     return m
 
 
-def _series(z: np.ndarray) -> np.ndarray:
-    m = np.zeros(z.shape + (2, 2), dtype=complex)
+def _unit_with(value: np.ndarray, row: int, col: int) -> np.ndarray:
+    """Transfer matrices (..., 2, 2): the identity with ``value`` at (row, col)."""
+    m = np.zeros(value.shape + (2, 2), dtype=complex)
     m[..., 0, 0] = 1.0
-    m[..., 0, 1] = z
+    m[..., row, col] = value
     m[..., 1, 1] = 1.0
     return m
+
+
+def _series(z: np.ndarray) -> np.ndarray:
+    """A series impedance ``z``: [[1, z], [0, 1]]."""
+    return _unit_with(z, 0, 1)
 
 
 def _shunt(y: np.ndarray) -> np.ndarray:
-    m = np.zeros(y.shape + (2, 2), dtype=complex)
-    m[..., 0, 0] = 1.0
-    m[..., 1, 0] = y
-    m[..., 1, 1] = 1.0
-    return m
+    """A shunt admittance ``y``: [[1, 0], [y, 1]]."""
+    return _unit_with(y, 1, 0)
 
 
 def pulsation_harmonics(rec: dict[str, np.ndarray], p: DieselParams,

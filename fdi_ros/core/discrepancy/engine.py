@@ -16,7 +16,9 @@ Procedure for each channel (greedy forward selection, at most ``max_findings`` s
    ``d_b = MSE_before_b - MSE_after_b`` (zero differences dropped). Blocks, not samples, are
    the units: within a block the residuals are correlated, the blocks (several seconds, long
    against the correlation time) are treated as independent. The p-value is
-   Bonferroni-corrected over all candidates of the step and all channels. A Diebold-Mariano
+   Bonferroni-corrected over the channel's own candidates of the step and all channels (the
+   errors of the model's input sensors are other carriers of the same shapes: they compete
+   for the attribution, they do not add chances of a false discovery). A Diebold-Mariano
    test on the per-sample loss differential with a Newey-West variance is reported alongside
    (``p_dm``).
 4. Choice: the candidate with the lowest held-out MSE; a special case of it (the same effect
@@ -491,10 +493,13 @@ def carrier(eff: Effect, channel: str) -> str:
 
 
 def _alternatives(c: _Channel, chain: list[Effect], scored: list[tuple[Candidate, np.ndarray]],
-                  choice: Candidate, by_label: dict[str, Effect]) -> list[dict[str, Any]]:
-    """Other effects the held-out data cannot tell apart from the choice (within one standard
-    error), with their own parameters fitted on every valid sample."""
-    alternatives = []
+                  choice: Candidate, by_label: dict[str, Effect], alpha: float = 0.05,
+                  max_ties: int = 8) -> list[dict[str, Any]]:
+    """Other explanations the held-out data cannot tell apart from the choice, with their own
+    parameters fitted on every valid sample: within one standard error of it, or significant
+    themselves and not significantly worse than it (one-sided Wilcoxon over the blocks, level
+    ``alpha``). One per effect and carrier (its best variant), best first."""
+    alternatives: list[dict[str, Any]] = []
     full_pred = None
     seen = {(choice.effect, choice.channel)}
     for cand, _ in sorted(scored, key=lambda ca: float(np.nanmean(ca[0].mse_blocks))):
@@ -502,7 +507,11 @@ def _alternatives(c: _Channel, chain: list[Effect], scored: list[tuple[Candidate
             continue  # one alternative per effect and channel: its best variant
         d = cand.mse_blocks - choice.mse_blocks
         d = d[np.isfinite(d)]
-        if d.size >= 3 and d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size):
+        if d.size < 3 or len(alternatives) >= max_ties:
+            continue
+        if d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size) or (
+                cand.p_adjusted < alpha
+                and paired_p(cand.mse_blocks, choice.mse_blocks) >= alpha):
             if full_pred is None:
                 full_pred, _ = fit_chain(c.ctx, chain, c.ok)
             alt = by_label[cand.label]
@@ -539,13 +548,21 @@ def _grow_chain(c: _Channel, cfg: DiscrepancyConfig, n_channels: int,
                   if (sc := _score(c, eff, bases, before, rmse_b, mse_b)) is not None]
         if not scored:
             break
-        m = len(scored) * n_channels
+        # Bonferroni over the effect shapes tested on the channel: an input sensor's error is
+        # one more carrier of a shape the channel's own candidates already test (its
+        # residual following the model's sensitivity to that sensor), a question of
+        # attribution among explanations rather than one more chance of a false discovery
+        m = max(1, sum(cand.channel == c.name for cand, _ in scored)) * n_channels
         scored = [(Candidate(**{**cand.__dict__, "p_adjusted": min(1.0, cand.p_value * m)}), a)
                   for cand, a in scored]
         if step == 0:
             table.extend(cand for cand, _ in scored)
-        eff, choice = _one_se_choice([(by_label[cand.label], cand) for cand, _ in scored],
-                                     cfg.alpha)
+        # the choice is made among the significant explanations when there are any (a
+        # better but unproven one is reported beside it as a tie)
+        pool = [(by_label[cand.label], cand) for cand, _ in scored
+                if cand.p_adjusted < cfg.alpha and cand.gain_pct >= cfg.min_gain_pct]
+        eff, choice = _one_se_choice(pool or [(by_label[cand.label], cand)
+                                              for cand, _ in scored], cfg.alpha)
         sig = choice.p_adjusted < cfg.alpha and choice.gain_pct >= cfg.min_gain_pct
         if progress:
             progress(f"{c.name} step {step + 1}: best {choice.label} gain "
@@ -553,7 +570,7 @@ def _grow_chain(c: _Channel, cfg: DiscrepancyConfig, n_channels: int,
                      f"{' (significant)' if sig else ''}")
         if not sig:
             break
-        alternatives = _alternatives(c, chain, scored, choice, by_label)
+        alternatives = _alternatives(c, chain, scored, choice, by_label, cfg.alpha)
         chain.append(eff)
         oof[f"after_{step + 1}"] = next(a for cand, a in scored if cand is choice)
         findings.append(Finding(rank=0, effect=choice.effect, label=choice.label,

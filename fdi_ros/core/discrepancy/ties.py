@@ -4,7 +4,8 @@ A model with one residual per channel cannot always say which sensor is wrong: i
 speed-density model the predicted air flow is nearly proportional to the manifold pressure, so
 a reading of the pressure sensor scaled by k looks like the flow sensor scaled by about 1/k.
 For a gain-error finding on channel c, every input sensor s of the model is re-scaled (after
-the finding's onset) by the factor k that fits the data best, the model is re-run, and the two
+the finding's onset) by the factor k that fits the data best (reported as the sensor's gain
+1/k), the model is re-run, and the two
 explanations are compared on contiguous 5 s blocks after the onset (two-sided Wilcoxon
 signed-rank test on the blockwise MSE differences). When they cannot be told apart, the input
 gain is reported as a tie, with its fitted factor, why the data cannot separate them and
@@ -135,12 +136,14 @@ def input_gain_ties(data: Measured, model: Any, channel: str, gain: float, onset
         better = p < alpha and float(np.median(d)) < 0
         out.append({
             "effect": "gain_error", "label": f"gain error on {name}", "channel": name,
-            "params": {"gain": k, "onset_s": onset_s},
+            # the sensor's own gain (its reading / the truth): the model is fed reading / gain
+            "params": {"gain": 1.0 / k, "onset_s": onset_s},
             "rmse_after_onset": {channel: r_ch, name: r_in},
             "p_distinguish": p,
             "fits_better": better,
             "gain_pct": float("nan"),
             "why": (f"the model predicts {channel} from {name}; scaling {name} by {k:.3f} "
+                    f"(a {name} sensor gain of {1.0 / k:.3f}) "
                     f"moves the prediction as a gain {gain:.3f} on {channel} moves the "
                     f"measurement (RMSE after the onset {r_in:.4g} vs {r_ch:.4g}, blockwise "
                     f"test p = {p:.2g}"

@@ -54,8 +54,8 @@ SENSOR_DETECTABLE: dict[str, dict[str, tuple[str, float, float]]] = {
     "T2": {"offset": ("offset", 6.0, 15.0), "gain_error": ("gain", 1.04, 1.12),
            "drift": ("rate_per_s", 0.15, 0.4), "input_dependence": ("coef", 6.0, 15.0)},
     "n": {"offset": ("offset", 60.0, 150.0), "gain_error": ("gain", 1.04, 1.12),
-          "drift": ("rate_per_s", 2.0, 5.0), "sensor_lag": ("tau_s", 0.2, 0.6),
-          "dead_time": ("delay_s", 0.2, 0.6), "input_dependence": ("coef", 60.0, 150.0)},
+          "drift": ("rate_per_s", 2.0, 5.0), "sensor_lag": ("tau_s", 0.3, 1.0),
+          "dead_time": ("delay_s", 0.3, 1.0), "input_dependence": ("coef", 60.0, 150.0)},
 }
 
 

@@ -37,6 +37,9 @@ def features_of_bag(path: str | Path) -> tuple[str, list]:
         if not blocks:
             raise ValueError(f"{path}: /fdi/sensor_block is empty")
         pre = make_preprocessor(blocks[0].plant)
+        push_many = getattr(pre, "push_many", None)
+        if callable(push_many):   # the whole stream in one pass (same features)
+            return blocks[0].plant, list(push_many(blocks))
         feats, last = [], None
         for b in blocks:
             if last is not None and b.index != last + 1:

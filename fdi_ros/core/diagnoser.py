@@ -195,11 +195,15 @@ class Diagnoser:
 
 def diagnose_offline(cfg: GraphConfig, features: Iterable[FeatureVector], *,
                      models: Mapping[str, Any] | None = None,
-                     progress: bool = False) -> list[tuple[FeatureVector, dict, Step]]:
+                     progress: bool = False,
+                     batch: bool = True) -> list[tuple[FeatureVector, dict, Step]]:
     """Run the whole bank and the diagnoser over feature vectors (no ROS, many x real time).
 
     Only the models on line at each step are evaluated, as in the live graph; a model taken on
     line after an isolation is reset first, as the live residual node is on activation.
+    ``batch``: models that offer ``batch(features, shared)`` compute the stream run by run
+    with array operations (same results); ``batch=False`` asks every model segment by
+    segment, as the live graph does (the reference path of the tests).
     """
     from fdi_ros.core.residual_models import load_residual_model
 
@@ -209,15 +213,34 @@ def diagnose_offline(cfg: GraphConfig, features: Iterable[FeatureVector], *,
     diag = Diagnoser(cfg)
     out = []
     feats = list(features)
+    ref_id = diag.reference_id if diag.symptom_gen is not None else ""
+    ref_rvs: list[ResidualVector] = []
+    symptoms: list[Any] = []
+    if batch:
+        shared: dict[str, Any] = {}
+        models = {mid: m.batch(feats, shared) if callable(getattr(m, "batch", None)) else m
+                  for mid, m in models.items()}
+        if ref_id in models and hasattr(diag.symptom_gen, "run"):
+            # The reference model is always on line (never reset): its residuals and the
+            # symptoms of the whole stream first, the bank and the supervisor step by step.
+            ref_rvs = [models[ref_id].residuals(fv) for fv in feats]
+            symptoms = diag.symptom_gen.run(ref_rvs)
     it: Iterable[FeatureVector] = feats
     if progress:
         from tqdm import tqdm
 
         it = tqdm(feats, desc="diagnose", unit="seg")
-    for fv in it:
-        res = {mid: models[mid].residuals(fv) for mid in diag.models_online}
-        step = diag.update(fv.index, fv.t_end, res)
+    for k, fv in enumerate(it):
+        if symptoms:
+            res = {mid: ref_rvs[k] if mid == ref_id else models[mid].residuals(fv)
+                   for mid in diag.models_online}
+            step = diag.update(fv.index, fv.t_end, res, symptoms=symptoms[k])
+        else:
+            res = {mid: models[mid].residuals(fv) for mid in diag.models_online}
+            step = diag.update(fv.index, fv.t_end, res)
         for mid in step.added:
+            if symptoms and mid == ref_id:
+                raise RuntimeError("the reference model went off line in an offline run")
             reset = getattr(models[mid], "reset", None)
             if callable(reset):
                 reset()

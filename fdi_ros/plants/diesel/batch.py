@@ -19,21 +19,27 @@ diagnosis events.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from fdi_ros.core.types import FeatureVector, ResidualVector
-from fdi_ros.plants.diesel.symptoms import (
-    RESIDUAL_UNITS,
-    RESIDUALS,
-    FaultHypothesisResidualModel,
-    ReferenceResidualModel,
-    parity_residuals,
-    residual_vector,
-)
 
+
+@dataclass(frozen=True)
+class Parity:
+    """The stateless part of the bank models, given by :mod:`fdi_ros.plants.diesel.symptoms`:
+    parity residuals of many segments, of one segment, and their names and units."""
+
+    many: Callable[..., tuple[np.ndarray, np.ndarray]]
+    one: Callable[..., ResidualVector]
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+
+
+_new = object.__new__
 _NAMES = ("n", "rho2", "eta_v", "maf_amp", "maf_phase", "p2_amp", "p2_phase")
 _OUTSIDE = "not valid here: operating point outside the identified region"
 _SETTLING = "not valid here: settling (too little history after a gap)"
@@ -57,17 +63,27 @@ def _column(feats: Sequence[FeatureVector], name: str) -> tuple[np.ndarray, np.n
 class _Stream:
     """Stateless per-segment quantities of one stream, shared by the models of a bank."""
 
-    def __init__(self, feats: Sequence[FeatureVector]) -> None:
+    def __init__(self, feats: Sequence[FeatureVector], parity: Parity) -> None:
+        self.parity = parity
         self.feats = list(feats)
         self.N = len(self.feats)
         self.t = np.array([fv.t_end for fv in self.feats], dtype=float)
         self.fv_valid = np.array([bool(fv.valid) for fv in self.feats])
         self.cols: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._matrix: np.ndarray | None = None
         self._base: dict[int, tuple[np.ndarray, np.ndarray, list[str]]] = {}
 
     def col(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         if name not in self.cols:
-            self.cols[name] = _column(self.feats, name)
+            names = self.feats[0].names if self.feats else ()
+            if self._matrix is None and all(fv.names == names for fv in self.feats):
+                self._matrix = np.array([fv.values for fv in self.feats], dtype=float)
+            if self._matrix is not None:   # one layout for the whole stream
+                have = name in names
+                self.cols[name] = (self._matrix[:, names.index(name)] if have
+                                   else np.full(self.N, np.nan), np.full(self.N, have))
+            else:
+                self.cols[name] = _column(self.feats, name)
         return self.cols[name]
 
     def base(self, models: Any) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -78,17 +94,17 @@ class _Stream:
             return self._base[key]
         data = {k: self.col(k)[0] for k in _NAMES}
         has_all = np.logical_and.reduce([self.col(k)[1] for k in _NAMES])
-        R = np.full((self.N, len(RESIDUALS)), np.nan)
+        R = np.full((self.N, len(self.parity.names)), np.nan)
         ok = np.zeros(self.N, dtype=bool)
         if has_all.any():
-            Ri, oki = parity_residuals(models, {k: v[has_all] for k, v in data.items()})
+            Ri, oki = self.parity.many(models, {k: v[has_all] for k, v in data.items()})
             R[has_all], ok[has_all] = Ri, oki
         valid = self.fv_valid & has_all & ok
         status = [""] * self.N
         for k in np.flatnonzero(~valid):
             fv = self.feats[k]
             if not has_all[k]:   # the per-segment function names the missing feature
-                rv = residual_vector(models, fv)
+                rv = self.parity.one(models, fv)
                 R[k], status[k] = rv.values, rv.status
             elif not fv.valid:
                 status[k] = fv.status or "features not valid"
@@ -150,7 +166,8 @@ class BatchedModel:
         self.model_id = model.model_id
         self.stream = stream
         self._pos = {id(fv): k for k, fv in enumerate(stream.feats)}
-        self._run: dict[str, Any] | None = None
+        self._names, self._units = stream.parity.names, stream.parity.units
+        self._run: tuple[list[bool], list[str], list[np.ndarray], list[float]] | None = None
         self._k0 = 0
         self._next = 0
 
@@ -169,12 +186,15 @@ class BatchedModel:
             raise ValueError(f"{self.model_id}: segment {k} out of turn (expected "
                              f"{self._next}); reset() first")
         self._next = k + 1
-        r = self._run
+        valid, status, values, norm = self._run
         i = k - self._k0
-        return ResidualVector(model_id=self.model_id, index=fv.index, t=fv.t_end,
-                              valid=bool(r["valid"][i]), status=r["status"][i],
-                              names=RESIDUALS, units=RESIDUAL_UNITS, values=r["values"][i],
-                              norm=float(r["norm"][i]))
+        # a frozen record's fields set at once (the per-field __setattr__ of the dataclass's
+        # __init__ is most of the cost of a step here)
+        rv = _new(ResidualVector)
+        rv.__dict__.update(model_id=self.model_id, index=fv.index, t=fv.t_end, valid=valid[i],
+                           status=status[i], names=self._names, units=self._units,
+                           values=values[i], norm=norm[i])
+        return rv
 
     # -- one run, from a reset at segment k0 to the end of the stream ----------------------
     def _gate(self, k0: int, R: np.ndarray, valid: np.ndarray,
@@ -228,13 +248,13 @@ class BatchedModel:
             R[rows, j] += c.storage_coeff * dp[rows] / (n[rows] * p2[rows])
         return R, valid, status
 
-    def _compute(self, k0: int) -> dict[str, Any]:
+    def _compute(self, k0: int) -> tuple[list[bool], list[str], list[np.ndarray], list[float]]:
         R0, valid0, status0 = self.stream.base(self.model.models)
         R, valid, status = self._gate(k0, R0[k0:].copy(), valid0[k0:].copy(), status0[k0:])
         cfg = self.model.config
         norm = np.full(R.shape[0], np.nan)
         values = R
-        if isinstance(self.model, ReferenceResidualModel):
+        if not hasattr(self.model, "directions"):   # the nominal (reference) model
             if cfg is not None:
                 rows = np.flatnonzero(valid)
                 Z = (R[rows] - np.asarray(cfg.centre)) / np.asarray(cfg.threshold)
@@ -244,11 +264,11 @@ class BatchedModel:
                     norm[rows] = _window_norms(Z, None, window=self.model.window)[1]
         else:
             values, norm = self._hypothesis(k0, R, valid, status)
-        return {"values": values, "valid": valid, "status": status, "norm": norm}
+        return (valid.tolist(), status, list(values), norm.tolist())
 
     def _hypothesis(self, k0: int, R: np.ndarray, valid: np.ndarray,
                     status: list[str]) -> tuple[np.ndarray, np.ndarray]:
-        h: FaultHypothesisResidualModel = self.model
+        h = self.model   # a fault-hypothesis model
         cfg = h.config
         rows = np.flatnonzero(valid)
         cols = [self.stream.col(k) for k in h.inputs]
@@ -283,12 +303,13 @@ class BatchedModel:
         return values, norm
 
 
-def batched(model: Any, features: Sequence[FeatureVector], shared: dict[str, Any]) -> Any:
+def batched(model: Any, features: Sequence[FeatureVector], shared: dict[str, Any],
+            parity: Parity) -> Any:
     """``model`` over one recorded stream (``shared``: per-stream data the bank's models
     share); the model itself when the stream's times do not increase (no batching)."""
     stream = shared.get("diesel")
     if stream is None or stream.feats is not features and list(features) != stream.feats:
-        stream = shared["diesel"] = _Stream(features)
+        stream = shared["diesel"] = _Stream(features, parity)
     if stream.N > 1 and not np.all(np.diff(stream.t) >= 0):
         return model
     return BatchedModel(model, stream)

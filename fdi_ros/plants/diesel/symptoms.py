@@ -282,9 +282,10 @@ class _Batchable:
     def batch(self, features: Sequence[FeatureVector], shared: dict) -> Any:
         """This model over one recorded stream, run by run with array operations (offline
         diagnosis; :mod:`fdi_ros.plants.diesel.batch`)."""
-        from fdi_ros.plants.diesel.batch import batched
+        from fdi_ros.plants.diesel.batch import Parity, batched
 
-        return batched(self, features, shared)
+        return batched(self, features, shared,
+                       Parity(parity_residuals, residual_vector, RESIDUALS, RESIDUAL_UNITS))
 
 
 class ReferenceResidualModel(_Batchable):

@@ -18,19 +18,13 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _bag(path: Path, *, seed: int, duration: float, fault: dict | None) -> Path:
-    from fdi_ros import bag
-    from fdi_ros.plants.diesel.scenario import iter_simulate, load_scenario
+    from fdi_ros.plants.diesel.scenario import simulate_to_bag
 
     doc = {"name": path.name, "seed": seed, "duration_s": duration, "dalpha_deg": 1.0,
            "block_deg": 720.0,
            "inputs": {"kind": "points", "points": [{"t": 0.0, "n": 2000, "torque": 130}]},
            "faults": [fault] if fault else []}
-    sc = load_scenario(doc)
-    with bag.BagWriter(path) as w:
-        for block, _ in iter_simulate(sc):
-            w.write_block(block)
-        for ev in sc.faults:
-            w.write_fault(ev)
+    simulate_to_bag(doc, path)
     return path
 
 

@@ -49,18 +49,6 @@ def _window(duration: float, fault_at: float | None, seed: int) -> dict:
     return doc
 
 
-def _simulate(doc: dict, path) -> None:
-    from fdi_ros import bag
-    from fdi_ros.plants.diesel.scenario import iter_simulate, load_scenario
-
-    sc = load_scenario(doc)
-    with bag.BagWriter(path) as w:
-        for block, _ in iter_simulate(sc):
-            w.write_block(block)
-        for ev in sc.faults:
-            w.write_fault(ev)
-
-
 def _step_wise(path) -> dict:
     """The path the live graph runs, offline: message objects, block by block, segment by
     segment (the reference of the tests)."""
@@ -120,6 +108,7 @@ def run(args: argparse.Namespace) -> int:
 
     from fdi_ros.offline import diagnose_bag, diagnose_fleet, without_timing
     from fdi_ros.plants import ensure_bank
+    from fdi_ros.plants.diesel.scenario import simulate_to_bag
 
     if args.repeat < 1 or args.duration <= 0:
         raise ValueError("--repeat must be >= 1 and --duration > 0")
@@ -129,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
     tmp = Path(tempfile.mkdtemp(prefix="fdi_bench_diagnose_"))
     try:
         path = tmp / "drive"
-        _simulate(_window(args.duration, args.fault_at, 5), path)
+        simulate_to_bag(_window(args.duration, args.fault_at, 5), path)
         fast = [diagnose_bag(path) for _ in range(args.repeat)]
         best = min(fast, key=lambda r: r["wall_seconds"])
         base = _step_wise(path)
@@ -153,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
             for i in range(args.fleet):
                 p = tmp / f"fleet_{i}"
                 fault = args.fleet_duration * 0.6 if i % 2 == 0 else None
-                _simulate(_window(args.fleet_duration, fault, 100 + i), p)
+                simulate_to_bag(_window(args.fleet_duration, fault, 100 + i), p)
                 bags.append(str(p))
             t0 = time.perf_counter()
             one = diagnose_fleet(bags, workers=1)

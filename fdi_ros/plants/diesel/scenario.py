@@ -385,5 +385,18 @@ def _concat_tables(tables):
                         values=np.concatenate([t.values for t in tabs]))
 
 
+def simulate_to_bag(scenario, path, *, seed: int | None = None) -> None:
+    """A scenario (Scenario, YAML path or mapping) into a new bag: its sensor blocks and its
+    fault ground truth (``fdi-ros simulate --out`` without the options)."""
+    from fdi_ros import bag
+
+    sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+    with bag.BagWriter(path) as w:
+        for block, _ in iter_simulate(sc, seed=seed):
+            w.write_block(block)
+        for ev in sc.faults:
+            w.write_fault(ev)
+
+
 __all__ = ["Scenario", "SimResult", "load_scenario", "load_cases", "simulate", "iter_simulate",
-           "CHANNELS", "UNITS"]
+           "simulate_to_bag", "CHANNELS", "UNITS"]

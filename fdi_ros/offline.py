@@ -60,6 +60,14 @@ def features_of_bag(path: str | Path) -> tuple[str, list]:
                      f"(topics: {sorted(tops)})")
 
 
+def valid_diagnosis(step: Any) -> bool:
+    """The segment got a valid diagnosis: the reference model's symptoms were valid there (or,
+    without a symptom stage, the supervisor had enough valid residuals)."""
+    if step.symptoms is not None:
+        return bool(step.symptoms.valid)
+    return bool(step.diagnosis.state != "not_valid")
+
+
 def summarise(steps: list, plant_seconds: float, wall_seconds: float, truth: list) -> dict:
     from fdi_ros.core.events import diagnosis_events
 
@@ -73,6 +81,7 @@ def summarise(steps: list, plant_seconds: float, wall_seconds: float, truth: lis
                 if lvl and name not in first_symptom:
                     first_symptom[name] = round(d.t, 4)
     final = steps[-1][2].diagnosis if steps else None
+    n_valid = sum(1 for _fv, _res, step in steps if valid_diagnosis(step))
     onset = min((e.t for e in truth if e.active and e.fault), default=math.nan)
     # Detection episodes: a detection either ends in an isolation (confirmed), is still open
     # at the end, or falls back to "no fault" (cleared: a transient the hold time T0 rejected).
@@ -109,6 +118,8 @@ def summarise(steps: list, plant_seconds: float, wall_seconds: float, truth: lis
         "first_symptom_s": first_symptom,
         "models_online": list(final.models_online) if final else [],
         "invalid_segments": sum(1 for fv, _, _ in steps if not fv.valid),
+        "valid_segments": n_valid,
+        "coverage": round(n_valid / len(steps), 4) if steps else None,
         "events": events,
     }
 
@@ -259,6 +270,7 @@ def _row(name: str, r: dict[str, Any]) -> dict[str, Any]:
             "isolation_s": num(r.get("isolation_time_s")),
             "isolation_delay_s": num(r.get("isolation_delay_s")),
             "invalid_segments": r.get("invalid_segments", ""),
+            "coverage": r.get("coverage", ""),
             "error": r.get("error", "")}
 
 

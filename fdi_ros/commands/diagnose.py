@@ -9,9 +9,9 @@ import sys
 import time
 from pathlib import Path
 
-from fdi_ros.offline import default_config, features_of_bag, summarise
+from fdi_ros.offline import default_config, features_of_bag, summarise, valid_diagnosis
 
-__all__ = ["default_config", "features_of_bag", "summarise"]
+__all__ = ["default_config", "features_of_bag", "summarise", "valid_diagnosis"]
 
 COMMAND = ("diagnose",)
 HELP = "diagnose bags offline with the same core as the live graph (JSON summary out)"

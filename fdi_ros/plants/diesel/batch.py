@@ -31,17 +31,19 @@ from fdi_ros.core.types import FeatureVector, ResidualVector
 @dataclass(frozen=True)
 class Parity:
     """The stateless part of the bank models, given by :mod:`fdi_ros.plants.diesel.symptoms`:
-    parity residuals of many segments, of one segment, and their names and units."""
+    parity residuals of many segments and of one, their names and units, the features they
+    read and why a segment is outside the models' region."""
 
     many: Callable[..., tuple[np.ndarray, np.ndarray]]
     one: Callable[..., ResidualVector]
     names: tuple[str, ...]
     units: tuple[str, ...]
+    required: tuple[str, ...]                   # features every segment must have
+    features: Callable[..., tuple[str, ...]]    # features the models read
+    region_status: Callable[..., list[str]]     # why segments are outside the region
 
 
 _new = object.__new__
-_NAMES = ("n", "rho2", "eta_v", "maf_amp", "maf_phase", "p2_amp", "p2_phase")
-_OUTSIDE = "not valid here: operating point outside the identified region"
 _SETTLING = "not valid here: settling (too little history after a gap)"
 
 
@@ -75,10 +77,8 @@ class _Stream:
 
     def col(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         if name not in self.cols:
-            names = self.feats[0].names if self.feats else ()
-            if self._matrix is None and all(fv.names == names for fv in self.feats):
-                self._matrix = np.array([fv.values for fv in self.feats], dtype=float)
-            if self._matrix is not None:   # one layout for the whole stream
+            names = self.uniform()
+            if self._matrix is not None and names is not None:   # one layout for the stream
                 have = name in names
                 self.cols[name] = (self._matrix[:, names.index(name)] if have
                                    else np.full(self.N, np.nan), np.full(self.N, have))
@@ -86,30 +86,38 @@ class _Stream:
                 self.cols[name] = _column(self.feats, name)
         return self.cols[name]
 
+    def uniform(self) -> tuple[str, ...] | None:
+        """The feature names when every vector of the stream has the same, else None."""
+        names = self.feats[0].names if self.feats else ()
+        if self._matrix is None and all(fv.names == names for fv in self.feats):
+            self._matrix = np.array([fv.values for fv in self.feats], dtype=float)
+        return names if self._matrix is not None else None
+
     def base(self, models: Any) -> tuple[np.ndarray, np.ndarray, list[str]]:
         """Parity residuals (N, 5), validity and status of every segment, as
         :func:`~fdi_ros.plants.diesel.symptoms.residual_vector` gives them one by one."""
         key = id(models)
         if key in self._base:
             return self._base[key]
-        data = {k: self.col(k)[0] for k in _NAMES}
-        has_all = np.logical_and.reduce([self.col(k)[1] for k in _NAMES])
-        R = np.full((self.N, len(self.parity.names)), np.nan)
-        ok = np.zeros(self.N, dtype=bool)
-        if has_all.any():
-            Ri, oki = self.parity.many(models, {k: v[has_all] for k, v in data.items()})
-            R[has_all], ok[has_all] = Ri, oki
-        valid = self.fv_valid & has_all & ok
+        P, names = self.parity, self.uniform()
+        if names is None or not all(k in names for k in P.required):
+            # mixed or incomplete layouts (rare): segment by segment
+            rvs = [P.one(models, fv) for fv in self.feats]
+            R = np.array([rv.values for rv in rvs], dtype=float).reshape(self.N, len(P.names))
+            self._base[key] = (R, np.array([rv.valid for rv in rvs], dtype=bool),
+                               [rv.status for rv in rvs])
+            return self._base[key]
+        data = {k: self.col(k)[0] for k in P.features(models) if k in names}
+        R, ok = P.many(models, data)
+        valid = self.fv_valid & ok
+        why = P.region_status(models, data, ok) if not ok.all() else None
         status = [""] * self.N
         for k in np.flatnonzero(~valid):
             fv = self.feats[k]
-            if not has_all[k]:   # the per-segment function names the missing feature
-                rv = self.parity.one(models, fv)
-                R[k], status[k] = rv.values, rv.status
-            elif not fv.valid:
+            if not fv.valid:
                 status[k] = fv.status or "features not valid"
             else:
-                status[k] = _OUTSIDE
+                status[k] = (why[k] if why is not None else "") or "residuals not finite"
         self._base[key] = (R, valid, status)
         return self._base[key]
 

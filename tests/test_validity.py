@@ -57,13 +57,12 @@ def test_malformed_regions_are_refused():
 
 def _fault_free(n_rpm: float, torque: float, egr: float, swirl: float, seed: int,
                 seconds: float = 2.5) -> list:
-    from fdi_ros.core.crank import CrankSegmenter
-    from fdi_ros.plants.diesel.plant import DieselIntakePlant, fuel_for_torque
+    from fdi_ros.plants.diesel.plant import DieselIntakePlant, crank_segmenter, fuel_for_torque
 
     plant = DieselIntakePlant(seed=seed)
     plant.set_inputs(n_rpm=n_rpm, fuel_mg=float(fuel_for_torque(n_rpm, torque, plant.p)),
                      egr_cmd=egr, swirl_cmd=swirl)
-    seg = CrankSegmenter(V_D=plant.p.V_D, R=plant.p.R)
+    seg = crank_segmenter(plant.p)
     feats: list = []
     while True:
         block = plant.advance(720)

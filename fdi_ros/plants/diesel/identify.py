@@ -41,11 +41,9 @@ def _blocks_from_csv(path: Path, mapping):
 
 def features_from_blocks(blocks) -> list:
     """Crank-synchronous features of consecutive blocks (segments may straddle blocks)."""
-    from fdi_ros.core.crank import CrankSegmenter
-    from fdi_ros.plants.diesel.plant import DieselParams
+    from fdi_ros.plants.diesel.plant import crank_segmenter
 
-    p = DieselParams()  # the engine's displacement and gas constant, one source
-    seg = CrankSegmenter(V_D=p.V_D, R=p.R)
+    seg = crank_segmenter()
     out = []
     for b in blocks:
         out.extend(seg.push_table(b).to_features())

@@ -51,6 +51,7 @@ from typing import Any
 
 import numpy as np
 
+from fdi_ros.core.crank import SegmentTable
 from fdi_ros.core.types import FaultEvent, SampleBlock
 from fdi_ros.plants.diesel.ecu import EcuSchedule
 from fdi_ros.plants.diesel.plant import (
@@ -60,6 +61,7 @@ from fdi_ros.plants.diesel.plant import (
     UNITS,
     DieselIntakePlant,
     DieselParams,
+    crank_segmenter,
     fuel_for_torque,
 )
 
@@ -390,11 +392,9 @@ def simulate(scenario, *, seed: int | None = None, progress: bool = False,
     ``seed`` overrides the scenario's noise seed. With ``keep_blocks=False`` only truth and
     features are kept (10 min at 2000 rpm are ~7 M samples, ~0.5 GB as blocks).
     """
-    from fdi_ros.core.crank import CrankSegmenter, SegmentTable
-
     sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
     sd = sc.seed if seed is None else int(seed)
-    seg = CrankSegmenter(V_D=sc.params.V_D, R=sc.params.R) if features else None
+    seg = crank_segmenter(sc.params) if features else None
     tables: list[SegmentTable] = []
     blocks: list[SampleBlock] = []
     bar = None
@@ -420,7 +420,6 @@ def simulate(scenario, *, seed: int | None = None, progress: bool = False,
 
 
 def _concat_tables(tables):
-    from fdi_ros.core.crank import SegmentTable
     tabs = [t for t in tables if t.index.size]
     if not tabs:
         return tables[0] if tables else None
@@ -435,5 +434,18 @@ def _concat_tables(tables):
                         values=np.concatenate([t.values for t in tabs]))
 
 
+def simulate_to_bag(scenario, path, *, seed: int | None = None) -> None:
+    """A scenario (Scenario, YAML path or mapping) into a new bag: its sensor blocks and its
+    fault ground truth (``fdi-ros simulate --out`` without the options)."""
+    from fdi_ros import bag
+
+    sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+    with bag.BagWriter(path) as w:
+        for block, _ in iter_simulate(sc, seed=seed):
+            w.write_block(block)
+        for ev in sc.faults:
+            w.write_fault(ev)
+
+
 __all__ = ["Scenario", "SimResult", "load_scenario", "load_cases", "simulate", "iter_simulate",
-           "CHANNELS", "UNITS"]
+           "simulate_to_bag", "CHANNELS", "UNITS"]

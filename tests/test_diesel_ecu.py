@@ -129,3 +129,37 @@ def test_coverage_report_counts_regions_reasons_and_false_symptoms():
     assert rep["regions"]["overrun"]["coverage"] == 1.0
     assert rep["not_valid_reasons"] == {"transient inputs": 1,
                                         "EGR command outside the identified region": 1}
+    from fdi_ros.plants.diesel.coverage import reason_class
+
+    assert reason_class("not valid here: operating point n = 1250 rpm, rho2 = 1.4 kg/m^3 "
+                        "outside the identified region") == \
+        "(n, rho2) outside the identified coverage"
+    assert reason_class("not valid here: n = 6000 rpm outside the identified region (over "
+                        "800..4000 rpm)") == "speed outside the identified range"
+
+
+def test_fault_case_report_counts_valid_segments_from_the_onset():
+    from types import SimpleNamespace as NS
+
+    from fdi_ros.core.types import FeatureVector
+    from fdi_ros.plants.diesel.coverage import fault_case_report
+
+    feats = [FeatureVector(plant="diesel", index=i, t_start=i * 0.015, t_end=(i + 1) * 0.015,
+                           alpha_start=0.0, valid=True, status="", names=("n", "fuel"),
+                           units=("rpm", "mg/stroke"), values=np.array([2000.0, 20.0]))
+             for i in range(40)]
+    # onset at 0.15 s (segment 10); segments 10-12 not valid, 13-14 valid and quiet,
+    # symptom from 15 on; isolated at the end
+    def step(i):
+        valid = not 10 <= i <= 12
+        lv = (-1, 0) if i >= 15 else (0, 0)
+        sym = NS(valid=valid, levels=lv if valid else (0, 0), signature="-,o",
+                 status="" if valid else "not valid here: transient inputs")
+        iso = ("leak_ic_engine",) if i >= 30 else ()
+        return None, None, NS(symptoms=sym, diagnosis=NS(isolated_faults=iso))
+
+    rep = fault_case_report([step(i) for i in range(40)], feats, "leak_ic_engine", 0.15)
+    assert rep["detected"] and rep["delay_valid_segments"] == 3 and rep["within_segments"]
+    assert rep["delay_s"] == pytest.approx(16 * 0.015 - 0.15)
+    assert rep["first_valid_after_onset_s"] == pytest.approx(14 * 0.015 - 0.15)
+    assert rep["isolated_correctly"] and rep["false_symptom_segments_before"] == 0

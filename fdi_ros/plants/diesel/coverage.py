@@ -41,8 +41,9 @@ def reason_class(status: str) -> str:
     for key, label in (("transient", "transient inputs"), ("settling", "settling"),
                        ("egr_cmd", "EGR command outside the identified region"),
                        ("swirl_cmd", "swirl command outside the identified region"),
-                       ("n = ", "speed outside the identified region"),
-                       ("rho2", "operating point outside the identified region"),
+                       ("operating point", "(n, rho2) outside the identified coverage"),
+                       ("n = ", "speed outside the identified range"),
+                       ("rho2 = ", "boost density outside the identified range"),
                        ("feature", "features not valid")):
         if key in s:
             return label

@@ -77,6 +77,14 @@ def test_reference_models_carry_the_region_of_every_input(diesel_reference_dir):
     mset = ReferenceModelSet.load(diesel_reference_dir)
     assert mset.validity is not None
     assert {"n", "rho2", "egr_cmd", "swirl_cmd"} <= set(mset.validity.names)
+    # above the identified speed range (e.g. a 6000 rpm benchmark; the plant itself stops at
+    # 5500 rpm): "not valid here", naming the speed
+    lo, hi = mset.validity["n"].lo, mset.validity["n"].hi
+    inside = {"n": 0.5 * (lo + hi), "rho2": mset.validity["rho2"].lo, "egr_cmd": 0.0,
+              "swirl_cmd": 0.0}
+    assert mset.validity.check(inside) == ""
+    why = mset.validity.check({**inside, "n": 6000.0})
+    assert why.startswith("not valid here") and "n = 6000 rpm" in why
 
 
 def test_fault_free_with_egr_open_or_swirl_closed_gives_no_symptom_no_isolation(diesel_bank):

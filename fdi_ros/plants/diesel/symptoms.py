@@ -307,7 +307,21 @@ def _z(r: np.ndarray, cfg: SymptomConfig | None) -> np.ndarray:
     return (r - np.asarray(cfg.centre)) / np.asarray(cfg.threshold)
 
 
-class ReferenceResidualModel:
+class _Batchable:
+    """Offline: a bank model over a whole recorded stream (:mod:`fdi_ros.plants.diesel.batch`,
+    equal to the segment-by-segment path)."""
+
+    def batch(self, features: Sequence[FeatureVector], shared: dict) -> Any:
+        """This model over one recorded stream, run by run with array operations (offline
+        diagnosis; :mod:`fdi_ros.plants.diesel.batch`)."""
+        from fdi_ros.plants.diesel.batch import Parity, batched
+
+        return batched(self, features, shared,
+                       Parity(parity_residuals, residual_vector, RESIDUALS, RESIDUAL_UNITS,
+                              FEATURES, model_features, region_status))
+
+
+class ReferenceResidualModel(_Batchable):
     """The nominal bank model: parity residuals against the five reference models.
 
     ``norm`` = RMS of the residuals centred and divided by their thresholds (from the
@@ -343,7 +357,7 @@ class ReferenceResidualModel:
         return ResidualVector(**{**rv.__dict__, "norm": block_rms(np.array(self._zbuf))})
 
 
-class FaultHypothesisResidualModel:
+class FaultHypothesisResidualModel(_Batchable):
     """A bank model for one fault: "the nominal residuals minus what this fault explains".
 
     The fault's effect on the (centred, normalised) residuals per unit fault size is a map of

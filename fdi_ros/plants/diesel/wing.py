@@ -12,7 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -87,6 +87,13 @@ class DieselPreprocessor:
 
     def push(self, block: SampleBlock) -> list[FeatureVector]:
         return self.seg.push(block)
+
+    def push_many(self, blocks: Sequence[SampleBlock]) -> list[FeatureVector]:
+        """The feature vectors of consecutive blocks, segmented in one pass (offline): the
+        same as pushing them one by one, since the segmenter spans block boundaries."""
+        from fdi_ros.core.crank import join_blocks
+
+        return self.seg.push_table(join_blocks(blocks)).to_features()
 
     def mark_gap(self) -> None:
         pass

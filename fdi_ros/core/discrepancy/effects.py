@@ -739,6 +739,23 @@ class SensorError(Effect):
         corr = params["beta"] * g * _step(ctx.t, params.get("onset_s"))
         return base + np.where(np.isfinite(corr), corr, 0.0)
 
+    def error(self, ctx: ChannelContext, params: dict[str, Any]) -> np.ndarray:
+        """The fitted error of the sensor's reading (reading - truth) per sample, in the
+        sensor's units."""
+        x = ctx.sensor_reading(self.sensor)
+        value = float(params[SENSOR_KINDS[self.kind][1]])
+        if self.kind in ("sensor_lag", "dead_time"):
+            return np.asarray(x - ctx.sensor_reading(self.sensor, value), float)
+        g = ctx.sensor_response(self.sensor, self._direction())
+        # the regressor is D(direction): the error is -beta times the direction itself
+        d = {"one": np.ones_like(x), "x": x, "t": ctx.t - ctx.t_ref}.get(self._direction())
+        if d is None:  # a measured column, standardised as in sensor_response
+            col = np.asarray(ctx.source[0][self.column] if ctx.source is not None else g,
+                             float)
+            d = (col - np.nanmean(col)) / (np.nanstd(col) or 1.0)
+        return np.asarray(-float(params["beta"]) * d * _step(ctx.t, params.get("onset_s")),
+                          float)
+
     def to_dict(self) -> dict[str, Any]:
         return {"effect": "sensor_error", "sensor": self.sensor, "kind": self.kind,
                 "column": self.column, "onset": self.onset}

@@ -167,8 +167,9 @@ class DiscrepancyResult:
                 "test": "one-sided Wilcoxon signed-rank test over the blockwise held-out MSE "
                         "differences (blocks as "
                         "the independent units, samples within a block are correlated), "
-                        "Bonferroni over candidates and channels; p_dm: Diebold-Mariano test "
-                        "on the per-sample loss differential with a Newey-West variance, for "
+                        "Bonferroni over the channels' own candidates and the channels "
+                        "(input-sensor errors compete for the attribution); p_dm: "
+                        "Diebold-Mariano test on the per-sample loss differential with a Newey-West variance, for "
                         "reference",
                 "alpha": self.config.alpha,
                 "min_gain_pct": self.config.min_gain_pct,

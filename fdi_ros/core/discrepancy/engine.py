@@ -169,8 +169,8 @@ class DiscrepancyResult:
                         "the independent units, samples within a block are correlated), "
                         "Bonferroni over the channels' own candidates and the channels "
                         "(input-sensor errors compete for the attribution); p_dm: "
-                        "Diebold-Mariano test on the per-sample loss differential with a Newey-West variance, for "
-                        "reference",
+                        "Diebold-Mariano test on the per-sample loss differential with a "
+                        "Newey-West variance, for reference",
                 "alpha": self.config.alpha,
                 "min_gain_pct": self.config.min_gain_pct,
             },

@@ -721,7 +721,14 @@ class SensorError(Effect):
             return {key: float(v), "sensor": self.sensor}
         g = ctx.sensor_response(self.sensor, self._direction())
         m = _train_mask(ctx, base, train, g)
-        b, t_on = _fit_scalar(ctx.y - base, g, ctx.t, m, onset=self.onset, nonneg=False)
+        if self.onset and self.kind == "gain_error":
+            # as for a gain of the channel: the onset is the change point of the relative
+            # residual (a gain of an input scales the prediction too), seen at low load as well
+            t_on = _relative_change_point(ctx.y, base, ctx.t, m)
+            after = m & (ctx.t >= t_on) if t_on is not None else m
+            b, _ = _fit_scalar(ctx.y - base, g, ctx.t, after, onset=False, nonneg=False)
+        else:
+            b, t_on = _fit_scalar(ctx.y - base, g, ctx.t, m, onset=self.onset, nonneg=False)
         out: dict[str, Any] = {key: float(value(b)), "beta": float(b), "sensor": self.sensor}
         if self.onset:
             out["onset_s"] = t_on

@@ -68,6 +68,21 @@ def valid_diagnosis(step: Any) -> bool:
     return bool(step.diagnosis.state != "not_valid")
 
 
+def not_valid_reasons(steps: list, most: int = 8) -> dict[str, int]:
+    """Why segments got no valid diagnosis: the symptom stage's "not valid" statuses with the
+    numbers replaced by ``#`` (e.g. ``not valid here: egr_cmd = # outside the identified
+    region (held at #)``), counted, most frequent first."""
+    import re
+    from collections import Counter
+
+    why: Counter[str] = Counter()
+    for _fv, _res, step in steps:
+        if not valid_diagnosis(step):
+            status = step.symptoms.status if step.symptoms is not None else "not_valid"
+            why[re.sub(r"-?\d+(?:\.\d+)?(?:e[-+]?\d+)?", "#", status or "not valid")] += 1
+    return dict(why.most_common(most))
+
+
 def summarise(steps: list, plant_seconds: float, wall_seconds: float, truth: list) -> dict:
     from fdi_ros.core.events import diagnosis_events
 
@@ -120,6 +135,7 @@ def summarise(steps: list, plant_seconds: float, wall_seconds: float, truth: lis
         "invalid_segments": sum(1 for fv, _, _ in steps if not fv.valid),
         "valid_segments": n_valid,
         "coverage": round(n_valid / len(steps), 4) if steps else None,
+        "not_valid_reasons": not_valid_reasons(steps),
         "events": events,
     }
 

@@ -81,22 +81,22 @@ class DiscrepancyConfig:
     sensor_effects: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
-        if self.n_blocks is not None and self.n_blocks < 4:
-            raise ValueError("n_blocks must be >= 4 for a paired test over blocks")
-        if self.n_folds is not None and self.n_folds < 2:
-            raise ValueError("n_folds must be >= 2")
-        if not 0 < self.alpha < 1:
-            raise ValueError("alpha must be in (0, 1)")
-        if self.max_findings < 1:
-            raise ValueError("max_findings must be >= 1")
+        rules = ((self.n_blocks is None or self.n_blocks >= 4,
+                  "n_blocks must be >= 4 for a paired test over blocks"),
+                 (self.n_folds is None or self.n_folds >= 2, "n_folds must be >= 2"),
+                 (0 < self.alpha < 1, "alpha must be in (0, 1)"),
+                 (self.max_findings >= 1, "max_findings must be >= 1"))
+        for ok, why in rules:
+            if not ok:
+                raise ValueError(why)
         bad = (set(self.effects) | set(self.sensor_effects or ())) - set(CATALOGUE)
         if bad:
             raise ValueError(f"unknown effects {sorted(bad)}; catalogue: {CATALOGUE}")
 
 
 @dataclass(frozen=True)
-class Candidate:
-    """Held-out score of one candidate extension in one greedy step."""
+class _Scored:
+    """What an explanation is and how it scored on the held-out blocks."""
 
     effect: str
     label: str
@@ -108,26 +108,22 @@ class Candidate:
     p_value: float
     p_adjusted: float
     p_dm: float
+
+
+@dataclass(frozen=True)
+class Candidate(_Scored):
+    """Held-out score of one candidate extension in one greedy step."""
+
     mse_blocks: np.ndarray = field(repr=False)
 
 
 @dataclass(frozen=True)
-class Finding:
+class Finding(_Scored):
     """One significant model deficiency, its extension and the held-out gain."""
 
     rank: int
-    effect: str
-    label: str
-    channel: str
     params: dict[str, Any]
-    rmse_before: float
-    rmse_after: float
-    gain_pct: float
-    p_value: float
-    p_adjusted: float
-    p_dm: float
     significant: bool
-    n_params: int
     step: int
     alternatives: list[dict[str, Any]] = field(default_factory=list)
     view: str = "samples"  # "samples", "segment means" or "crank-resolved"

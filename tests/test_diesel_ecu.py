@@ -163,3 +163,21 @@ def test_fault_case_report_counts_valid_segments_from_the_onset():
     assert rep["delay_s"] == pytest.approx(16 * 0.015 - 0.15)
     assert rep["first_valid_after_onset_s"] == pytest.approx(14 * 0.015 - 0.15)
     assert rep["isolated_correctly"] and rep["false_symptom_segments_before"] == 0
+    assert rep["observable_at_onset"]
+
+
+def test_stuck_actuators_are_observable_only_below_the_command():
+    from fdi_ros.core.types import FeatureVector
+    from fdi_ros.plants.diesel.coverage import observable
+
+    def fv(egr, swirl):
+        return FeatureVector(plant="diesel", index=0, t_start=0.0, t_end=0.015,
+                             alpha_start=0.0, valid=True, status="",
+                             names=("egr_cmd", "swirl_cmd"), units=("1", "1"),
+                             values=np.array([egr, swirl]))
+
+    assert observable("egr_stuck_open", 0.5, fv(0.0, 0.0))
+    assert not observable("egr_stuck_open", 0.5, fv(0.6, 0.0))
+    assert observable("swirl_flap_closed", 1.0, fv(0.3, 0.0))
+    assert not observable("swirl_flap_closed", 1.0, fv(0.3, 1.0))
+    assert observable("leak_ic_engine", 5.0, fv(0.6, 1.0))

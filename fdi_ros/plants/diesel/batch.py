@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from fdi_ros.core.types import FeatureVector, ResidualVector
+from fdi_ros.plants.diesel.ecu import ACTUATOR_SETTLE_S, GATED_ACTUATORS, actuator_status
 
 
 @dataclass(frozen=True)
@@ -250,11 +251,35 @@ class BatchedModel:
             valid[i] = False
             status[i] = (f"not valid here: transient inputs (speed moved {dn[i]:.0f} rpm, "
                          f"fuel {df[i]:.1f} mg within {c.settle_s:g} s)")
+        moved = self._actuators_moved(k0, t, k, rs)
+        for i in np.flatnonzero(valid):
+            why = actuator_status({a: float(v[i]) for a, v in moved.items()})
+            if why:
+                valid[i], status[i] = False, why
         if "r_eta" in c.names and c.storage_coeff:
             j = c.names.index("r_eta")
             rows = np.flatnonzero(valid)
             R[rows, j] += c.storage_coeff * dp[rows] / (n[rows] * p2[rows])
         return R, valid, status
+
+    def _actuators_moved(self, k0: int, t: np.ndarray, k: np.ndarray,
+                         rs: np.ndarray) -> dict[str, np.ndarray]:
+        """Per actuator command, its range over the last ACTUATOR_SETTLE_S of the run (NaN:
+        not in the data), as QuasiStationarity.actuators_moved."""
+        out = {}
+        lo = np.minimum(np.maximum(rs, np.searchsorted(t, t - ACTUATOR_SETTLE_S,
+                                                       side="left")), k)
+        idx = np.empty(2 * t.size, dtype=np.intp)
+        idx[0::2], idx[1::2] = lo, k + 1
+        for a in GATED_ACTUATORS:
+            v, has = (x[k0:] for x in self.stream.col(a))
+            v = np.where(has & np.isfinite(v), v, np.nan)
+            if not np.isfinite(v).any():
+                continue
+            pad = np.append(v, np.nan)
+            with np.errstate(invalid="ignore"):
+                out[a] = (np.fmax.reduceat(pad, idx)[0::2] - np.fmin.reduceat(pad, idx)[0::2])
+        return out
 
     def _compute(self, k0: int) -> tuple[list[bool], list[str], list[np.ndarray], list[float]]:
         R0, valid0, status0 = self.stream.base(self.model.models)

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["REGIONS", "coverage_figure", "coverage_report", "fault_case_report",
+__all__ = ["REGIONS", "coverage_figure", "coverage_report", "fault_case_report", "observable",
            "realistic_drive", "reason_class", "region_of"]
 
 REGIONS = ("egr_open_flaps_closed", "egr_open_flaps_open", "egr_closed", "overrun")
@@ -109,8 +109,20 @@ def coverage_figure(features: Sequence, states: Sequence, path: str | Path, *,
 REALISTIC_DRIVE = "config/scenarios/diesel_realistic_drive.yaml"
 
 
+def observable(fault: str, size: float, fv) -> bool:
+    """Whether the fault can change anything at this segment's actuator commands: a valve stuck
+    at ``size`` while the ECU opens it further, or flaps stuck closed while the ECU closes them,
+    leave the plant as it is."""
+    names = fv.names
+    if fault == "egr_stuck_open" and "egr_cmd" in names:
+        return bool(fv.get("egr_cmd") < size)
+    if fault == "swirl_flap_closed" and "swirl_cmd" in names:
+        return bool(fv.get("swirl_cmd") < min(size, 1.0) - 0.02)
+    return True
+
+
 def fault_case_report(steps: Sequence, features: Sequence, fault: str, onset: float,
-                      *, max_segments: int = 5) -> dict[str, Any]:
+                      *, max_segments: int = 5, size: float = 1.0) -> dict[str, Any]:
     """Detection and isolation of one fault opened at ``onset`` [s] (``steps``: the
     diagnoser's steps over ``features``). The delay counts the segments with a valid diagnosis
     from the onset on (a segment the models do not cover cannot detect anything)."""
@@ -137,7 +149,8 @@ def fault_case_report(steps: Sequence, features: Sequence, fault: str, onset: fl
             "within_segments": det is not None and valid_seen <= max_segments,
             "signature": steps[det][2].symptoms.signature if det is not None else None,
             "isolated": iso, "isolated_correctly": iso == [fault],
-            "region_at_onset": region_of(features[min(k0, len(features) - 1)])}
+            "region_at_onset": region_of(features[min(k0, len(features) - 1)]),
+            "observable_at_onset": observable(fault, size, features[min(k0, len(features) - 1)])}
 
 
 def realistic_drive(config, *, seed: int = 202, progress: bool = False,
@@ -171,7 +184,7 @@ def realistic_drive(config, *, seed: int = 202, progress: bool = False,
         t0 = max(0.0, ev.t - before_s)
         fw, _ = simulate_features(window(sc, t0, ev.t + after_s), seed=seed + 1 + i,
                                   progress=progress)
-        runs.append({**fault_case_report(diagnose_offline(cfg, fw), fw, ev.fault, ev.t - t0),
-                     "onset_drive_s": ev.t})
+        runs.append({**fault_case_report(diagnose_offline(cfg, fw), fw, ev.fault, ev.t - t0,
+                                         size=ev.size), "onset_drive_s": ev.t})
     out["faults"] = runs
     return out

@@ -25,7 +25,25 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["EcuSchedule"]
+__all__ = ["ACTUATOR_MOVE", "ACTUATOR_SETTLE_S", "GATED_ACTUATORS", "EcuSchedule",
+           "actuator_status"]
+
+# After an EGR or swirl command changes, the manifold's gas and the T2 sensor (time constant
+# 0.8 s) take about three seconds to settle: the static maps do not hold meanwhile (a tip-in
+# that closes the EGR valve otherwise reads as a leak for a second). Commands that moved by
+# more than ACTUATOR_MOVE within the last ACTUATOR_SETTLE_S make a segment "not valid here".
+ACTUATOR_SETTLE_S = 3.0
+ACTUATOR_MOVE = 0.02
+GATED_ACTUATORS = ("egr_cmd", "swirl_cmd")
+
+
+def actuator_status(moved: Mapping[str, float]) -> str:
+    """The "not valid" status of actuator commands that moved (name -> change), "" if none."""
+    big = {k: v for k, v in moved.items() if v > ACTUATOR_MOVE}
+    if not big:
+        return ""
+    what = ", ".join(f"{k} by {v:.2f}" for k, v in big.items())
+    return f"not valid here: actuators moved ({what} within {ACTUATOR_SETTLE_S:g} s)"
 
 
 @dataclass(frozen=True)

@@ -128,6 +128,24 @@ class ChannelContext:
     source: Any = field(default=None, repr=False)  # (data, model) behind ``sensor_response``
     responses: dict[Any, np.ndarray] = field(default_factory=dict, repr=False)
 
+    def sensor_lag_response(self, sensor: str, tau_s: float) -> np.ndarray:
+        """``yhat(x + tau dx/dt) - yhat(x)``: the prediction from the reading of ``sensor``
+        with a first-order lag tau undone (the truth of a lagged reading is the reading plus
+        tau times its slope), minus the prediction. The slope is taken over a window of tau
+        (at least 0.05 s): undoing a lag amplifies what is faster than it. Cached per tau."""
+        key = (sensor, "lag", round(float(tau_s), 9))
+        if key in self.responses:
+            return self.responses[key]
+        if self.source is None:
+            raise ValueError(f"no model behind channel {self.channel}")
+        data, model = self.source
+        x = self.sensor_reading(sensor)
+        slope = smooth_derivative(x, data.t, data.segment, max(float(tau_s), 0.05))
+        pred = model.predict(_replaced(data, sensor, x + tau_s * slope))[self.channel]
+        out: np.ndarray = np.asarray(pred, float) - self.sensor_base()
+        self.responses[key] = out
+        return out
+
     def sensor_shift_response(self, sensor: str, delay_s: float) -> np.ndarray:
         """``yhat(x(t + d)) - yhat(x(t))``: the prediction from the reading of ``sensor``
         advanced by ``delay_s`` (per segment, linear interpolation), minus the prediction.

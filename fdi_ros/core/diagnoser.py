@@ -72,6 +72,7 @@ class Diagnoser:
         sym = cfg.symptoms or {}
         self.max_mismatch = int(sym.get("max_mismatch", 1))
         self.explain_norm = float(sym.get("explain_norm", math.inf))
+        self._candidates: dict[tuple[int, ...], tuple[str, ...]] = {}
 
     @property
     def models_online(self) -> tuple[str, ...]:
@@ -111,8 +112,12 @@ class Diagnoser:
                 observed = symptoms.in_order(cols) if cols else tuple(symptoms.levels)
                 # The faults the symptoms do not contradict: a fault outside this list
                 # cannot explain the residuals, however small its model's residual.
-                candidates = tuple(isolate(observed, self.table, max_mismatch=self.max_mismatch,
-                                           opposite="exclude", keep="all"))
+                cached = self._candidates.get(observed)
+                if cached is None:   # a pure function of the pattern: once per pattern
+                    cached = self._candidates[observed] = tuple(isolate(
+                        observed, self.table, max_mismatch=self.max_mismatch,
+                        opposite="exclude", keep="all"))
+                candidates = cached
             if not self.supervisor.isolated:
                 if not active:
                     # No symptom: the reference model explains the data by definition; the

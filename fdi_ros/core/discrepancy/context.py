@@ -142,20 +142,31 @@ class ChannelContext:
         if self.source is None:
             raise ValueError(f"no model behind channel {self.channel}")
         data, model = self.source
+        adv = self.sensor_reading(sensor, delay_s)
+        pred = model.predict(_replaced(data, sensor, adv))[self.channel]
+        base = self.sensor_base()
+        out: np.ndarray = np.asarray(pred, float) - base
+        self.responses[key] = out
+        return out
+
+    def sensor_reading(self, sensor: str, advance_s: float = 0.0) -> np.ndarray:
+        """The reading of an input sensor, advanced by ``advance_s`` (per segment, linear
+        interpolation; 0: as measured)."""
+        if self.source is None:
+            raise ValueError(f"no data behind channel {self.channel}")
+        data = self.source[0]
         x = np.asarray(data[sensor], float)
+        if advance_s == 0.0:
+            return x
         adv = np.empty_like(x)
         seg = np.asarray(data.segment)
         cuts = np.flatnonzero(np.diff(seg)) + 1
         for a, b in zip(np.r_[0, cuts], np.r_[cuts, x.size]):
             ts, xs = data.t[a:b], x[a:b]
             okx = np.isfinite(xs)
-            adv[a:b] = (np.interp(ts + delay_s, ts[okx], xs[okx]) if okx.sum() > 1
+            adv[a:b] = (np.interp(ts + advance_s, ts[okx], xs[okx]) if okx.sum() > 1
                         else np.nan)
-        pred = model.predict(_replaced(data, sensor, adv))[self.channel]
-        base = self.sensor_base()
-        out: np.ndarray = np.asarray(pred, float) - base
-        self.responses[key] = out
-        return out
+        return adv
 
     def sensor_base(self) -> np.ndarray:
         """The model's own prediction of this channel (before any extension)."""

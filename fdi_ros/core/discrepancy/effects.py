@@ -721,7 +721,14 @@ class SensorError(Effect):
             return {key: float(v), "sensor": self.sensor}
         g = ctx.sensor_response(self.sensor, self._direction())
         m = _train_mask(ctx, base, train, g)
-        b, t_on = _fit_scalar(ctx.y - base, g, ctx.t, m, onset=self.onset, nonneg=False)
+        if self.onset and self.kind == "gain_error":
+            # as for a gain of the channel: the onset is the change point of the relative
+            # residual (a gain of an input scales the prediction too), seen at low load as well
+            t_on = _relative_change_point(ctx.y, base, ctx.t, m)
+            after = m & (ctx.t >= t_on) if t_on is not None else m
+            b, _ = _fit_scalar(ctx.y - base, g, ctx.t, after, onset=False, nonneg=False)
+        else:
+            b, t_on = _fit_scalar(ctx.y - base, g, ctx.t, m, onset=self.onset, nonneg=False)
         out: dict[str, Any] = {key: float(value(b)), "beta": float(b), "sensor": self.sensor}
         if self.onset:
             out["onset_s"] = t_on
@@ -738,6 +745,23 @@ class SensorError(Effect):
         g = ctx.sensor_response(self.sensor, self._direction())
         corr = params["beta"] * g * _step(ctx.t, params.get("onset_s"))
         return base + np.where(np.isfinite(corr), corr, 0.0)
+
+    def error(self, ctx: ChannelContext, params: dict[str, Any]) -> np.ndarray:
+        """The fitted error of the sensor's reading (reading - truth) per sample, in the
+        sensor's units."""
+        x = ctx.sensor_reading(self.sensor)
+        value = float(params[SENSOR_KINDS[self.kind][1]])
+        if self.kind in ("sensor_lag", "dead_time"):
+            return np.asarray(x - ctx.sensor_reading(self.sensor, value), float)
+        g = ctx.sensor_response(self.sensor, self._direction())
+        # the regressor is D(direction): the error is -beta times the direction itself
+        d = {"one": np.ones_like(x), "x": x, "t": ctx.t - ctx.t_ref}.get(self._direction())
+        if d is None:  # a measured column, standardised as in sensor_response
+            col = np.asarray(ctx.source[0][self.column] if ctx.source is not None else g,
+                             float)
+            d = (col - np.nanmean(col)) / (np.nanstd(col) or 1.0)
+        return np.asarray(-float(params["beta"]) * d * _step(ctx.t, params.get("onset_s")),
+                          float)
 
     def to_dict(self) -> dict[str, Any]:
         return {"effect": "sensor_error", "sensor": self.sensor, "kind": self.kind,

@@ -42,7 +42,7 @@ import numpy as np
 from scipy import stats
 
 from fdi_ros.core.discrepancy.context import ChannelContext
-from fdi_ros.core.discrepancy.effects import CATALOGUE, Effect, candidates
+from fdi_ros.core.discrepancy.effects import CATALOGUE, Effect, SensorError, candidates
 from fdi_ros.core.discrepancy.ties import tie_reason
 
 
@@ -167,9 +167,10 @@ class DiscrepancyResult:
                 "test": "one-sided Wilcoxon signed-rank test over the blockwise held-out MSE "
                         "differences (blocks as "
                         "the independent units, samples within a block are correlated), "
-                        "Bonferroni over candidates and channels; p_dm: Diebold-Mariano test "
-                        "on the per-sample loss differential with a Newey-West variance, for "
-                        "reference",
+                        "Bonferroni over the channels' own candidates and the channels "
+                        "(input-sensor errors compete for the attribution); p_dm: "
+                        "Diebold-Mariano test on the per-sample loss differential with a "
+                        "Newey-West variance, for reference",
                 "alpha": self.config.alpha,
                 "min_gain_pct": self.config.min_gain_pct,
             },
@@ -581,7 +582,7 @@ def _grow_chain(c: _Channel, cfg: DiscrepancyConfig, n_channels: int,
 
 
 MIN_GAIN_EFFECT = 0.01  # relevance floor of a gain error: |gain - 1| [1]
-MIN_EFFECT_REL = 0.01  # relevance floor of any effect: RMS change / RMS level of the channel
+MIN_EFFECT_REL = 0.01  # relevance floor of any effect: its error / RMS of the reading
 
 
 def _gain_magnitude(params: dict[str, Any]) -> float:
@@ -608,21 +609,37 @@ def _refit(c: _Channel, chain: list[Effect], findings: list[Finding], info: dict
     # A gain error below the relevance floor (every piece within MIN_GAIN_EFFECT of 1, the
     # order of a sensor's own accuracy class) is a real but negligible wander of the model,
     # not a deficiency worth naming: it stays in the candidate table, not among the findings.
-    # Any other effect is held to the same floor by its size: the RMS change it makes to the
-    # prediction must reach MIN_EFFECT_REL of the channel's RMS level (a sensor's accuracy
-    # class, 1 % of reading); smaller effects are real but negligible wanders of the model.
+    # Any other effect is held to the same floor by its size: the error it puts on a reading
+    # (the channel's, or an input sensor's) must reach MIN_EFFECT_REL of that reading's RMS
+    # (a sensor's accuracy class, 1 % of reading) in RMS over the record, a drift by what it
+    # accumulates, an input sensor's lag or dead time against how much the reading moves;
+    # smaller effects are real but negligible wanders of the model.
     level = float(np.sqrt(np.mean(ctx.y[c.ok] ** 2)))
     pred, size = ctx.yhat, []
     for eff, p in fitted:
         nxt = eff.apply(ctx, pred, p)
-        d = (nxt - pred)[c.ok]
-        size.append(float(np.sqrt(np.nanmean(d ** 2))) if d.size else 0.0)
+        if isinstance(eff, SensorError):
+            e, x = eff.error(ctx, p), ctx.sensor_reading(eff.sensor)
+            ok = c.ok & np.isfinite(e) & np.isfinite(x)
+            # a lag or dead time errs only while the reading moves: judged against how much
+            # it moves (its standard deviation), the other errors against the reading
+            timing = eff.kind in ("sensor_lag", "dead_time")
+            ref = (float(np.std(x[ok]) if timing else np.sqrt(np.mean(x[ok] ** 2)))
+                   if ok.any() else 0.0)
+            e = e[ok]
+        else:
+            e, ref = (nxt - pred)[c.ok], level
+            e = e[np.isfinite(e)]
+        mag = 0.0
+        if e.size:
+            mag = float(np.max(np.abs(e)) if eff.id == "drift" else np.sqrt(np.mean(e ** 2)))
+        size.append(mag / ref if ref > 0 else 0.0)
         pred = nxt
     findings[:] = [f for f in findings
                    if not (f.model_channel == c.name
                            and ((f.effect == "gain_error"
                                  and _gain_magnitude(f.params) < MIN_GAIN_EFFECT)
-                                or size[f.step - 1] < MIN_EFFECT_REL * level))]
+                                or size[f.step - 1] < MIN_EFFECT_REL))]
     final = apply_chain(ctx, fitted)
     info["rmse_extended_in_sample"] = float(np.sqrt(np.mean((ctx.y - final)[c.ok] ** 2)))
     return fitted

@@ -115,7 +115,7 @@ def _evidence_figure(plt: Any, out: Path, result: DiscrepancyResult
                f"({a.gain_pct:.1f} %, p_adj {a.p_adjusted:.2g})")
     ax[0].plot(blocks, np.sqrt(b.mse_blocks), "s-", ms=3, label=f"runner-up: {b.label} "
                f"({b.gain_pct:.1f} %, p_adj {b.p_adjusted:.2g})")
-    ax[0].set_ylabel(f"held-out RMSE ({a.channel})")
+    ax[0].set_ylabel("held-out RMSE of the residual")
     ax[0].legend(fontsize=8)
     d = b.mse_blocks - a.mse_blocks
     ax[1].bar(blocks, d, color=["C2" if v > 0 else "C3" for v in d])
@@ -298,7 +298,9 @@ def write_report(out_dir: str | Path, data: Measured, baseline: Any, extended: E
                          f"{_fmt_params(a['params'])}.")
     lines += ["", "Held-out scheme: contiguous time blocks, each held out in turn (guard bands "
               "around it); significance: Wilcoxon signed-rank over the blockwise held-out MSE, "
-              "Bonferroni over all candidates.", ""]
+              "Bonferroni over the channel's own candidates (the errors of the model's input "
+              "sensors compete for the attribution); ties: explanations not significantly "
+              "worse than the top one.", ""]
     for name, cap in figs:
         lines += [f"## {cap}", "", f"![{cap}]({name})", ""]
     md = out / "index.md"

@@ -502,10 +502,12 @@ def _register() -> None:
     @register_residual_model("diesel_fault_hypothesis")
     def _make_hypothesis(spec: dict, *, base_dir: Path,
                          model_id: str) -> FaultHypothesisResidualModel:
-        unknown = set(spec) - {"path", "hypothesis", "window", "penalty", "min_effect"}
+        # size: the fault size the bank builder identifies the hypothesis at (not used here)
+        unknown = set(spec) - {"path", "hypothesis", "window", "penalty", "min_effect", "size"}
         if unknown or "hypothesis" not in spec:
             raise ValueError("diesel_fault_hypothesis needs 'hypothesis:' (directory), "
-                             f"optional path/window/penalty; unknown keys {sorted(unknown)}")
+                             "optional path/window/penalty/min_effect/size; unknown keys "
+                             f"{sorted(unknown)}")
         d = base_dir / spec.get("path", ".")
         cfg = load_symptom_config(d)
         if cfg is None:

@@ -1,0 +1,94 @@
+"""Hosting nodes in a process: the executor kinds and the spin loop shared by every node
+process, whether it holds one node (``fdi_ros.nodes.*``) or several (the model host, as a
+component container holds components).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import time
+import traceback
+from collections.abc import Callable, Sequence
+from typing import Any
+
+# After a stop signal, keep executing callbacks this long for data already delivered.
+DRAIN_S = 0.3
+
+
+EXECUTORS = ("single", "events", "multi")
+
+
+def make_executor(kind: str, threads: int = 2) -> Any:
+    """An rclpy executor by name: ``single`` (SingleThreadedExecutor), ``events``
+    (rclpy.experimental.EventsExecutor) or ``multi`` (MultiThreadedExecutor)."""
+    from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+
+    if kind == "events":
+        from rclpy.experimental import EventsExecutor
+
+        return EventsExecutor()
+    if kind == "multi":
+        return MultiThreadedExecutor(num_threads=threads)
+    if kind == "single":
+        return SingleThreadedExecutor()
+    raise ValueError(f"unknown executor {kind!r}; known: {', '.join(EXECUTORS)}")
+
+
+def run_nodes(make_nodes: Callable[[], Sequence[Any]], *, executor: str = "single",
+              threads: int = 2, on_shutdown: Callable[[Any], None] | None = None,
+              args: list[str] | None = None) -> int:
+    """Initialise rclpy, spin the nodes ``make_nodes()`` returns on ONE executor of the kind
+    ``executor`` until SIGINT/SIGTERM, drain, shut down cleanly (``on_shutdown`` per node).
+
+    Several nodes in one process on one executor is how a component container hosts them:
+    each stays a node of its own (name, parameters, services), only the process is shared.
+    """
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # loopback
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.signals import SignalHandlerOptions
+
+    # Our own SIGINT/SIGTERM handling: stop spinning, then drain what DDS already delivered
+    # (a recorder must not lose acknowledged messages), then shut down.
+    rclpy.init(args=args if args is not None else sys.argv,
+               signal_handler_options=SignalHandlerOptions.NO)
+    nodes: list[Any] = []
+    stopping = {"flag": False}
+
+    def _stop(signum: int, frame: Any) -> None:
+        stopping["flag"] = True
+
+    signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGINT, _stop)
+    code = 0
+    try:
+        nodes = list(make_nodes())
+        ex = make_executor(executor, threads)
+        for node in nodes:
+            ex.add_node(node)
+        while not stopping["flag"] and rclpy.ok():
+            ex.spin_once(timeout_sec=0.1)
+        deadline = time.monotonic() + DRAIN_S
+        while rclpy.ok() and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.02)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except Exception:
+        traceback.print_exc()
+        code = 1
+    finally:
+        for node in nodes:
+            if on_shutdown is not None:
+                try:
+                    on_shutdown(node)
+                except Exception:
+                    traceback.print_exc()
+                    code = 1
+            try:
+                node.destroy_node()
+            except Exception:
+                pass
+        rclpy.try_shutdown()
+    return code

@@ -163,6 +163,17 @@ def _hypothesis_current(spec: dict, fault_id: str) -> bool:
                 and math.isclose(float(info.get("size", size)), size))
 
 
+def _reference_current(d: Path) -> bool:
+    """The reference model set exists and carries its validity region (sets identified before
+    the region was stored with them are rebuilt)."""
+    if not all((d / f).exists() for f in REFERENCE_FILES):
+        return False
+    try:
+        return json.loads((d / REFERENCE_FILES[0]).read_text()).get("validity") is not None
+    except ValueError:
+        return False
+
+
 def _missing(cfg: GraphConfig) -> list[tuple[str, dict]]:
     out = []
     for e in cfg.bank:
@@ -170,8 +181,7 @@ def _missing(cfg: GraphConfig) -> list[tuple[str, dict]]:
         if not isinstance(spec, dict):
             continue
         if spec.get("type") == "diesel_reference":
-            d = Path(spec["path"])
-            if not all((d / f).exists() for f in REFERENCE_FILES):
+            if not _reference_current(Path(spec["path"])):
                 out.append((e.id, spec))
         elif spec.get("type") == "diesel_fault_hypothesis" and not _hypothesis_current(
                 spec, next(iter(e.faults), "")):

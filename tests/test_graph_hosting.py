@@ -102,11 +102,20 @@ def test_container_hosted_bank_lifecycle_external_change_and_respawn(diesel_bank
         w.spin_until(fut.done, 10.0, "the external deactivate", alive)
         assert fut.result().success
 
-        def seen_external() -> bool:
-            s = _model_status(w, target)
-            return s is not None and "external" in s[0].message and target in s[0].message
+        mid = target.removeprefix("fdi_model_")
 
-        w.spin_until(seen_external, 20.0, "the supervisor reporting the external change", alive)
+        def statuses() -> list:
+            return [st for _, arr in w.seen.diagnostics for st in arr.status
+                    if st.name == SUP + mid]
+
+        def seen_external() -> bool:
+            return any("external" in st.message and target in st.message for st in statuses())
+
+        try:
+            w.spin_until(seen_external, 20.0, "the supervisor reporting the external change",
+                         alive)
+        except TimeoutError:
+            raise AssertionError(sorted({st.message for st in statuses()})) from None
         w.spin_until(lambda: (_model_status(w, target) or (0, {}))[1].get(
             "external_transitions") == "1" and bank_active(), 30.0,
             "the external change undone", alive)

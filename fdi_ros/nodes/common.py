@@ -1,5 +1,6 @@
-"""What every fdi_ros node shares: QoS, parameters with descriptors, the loopback guard, and a
-main() wrapper.
+"""What every fdi_ros node shares: QoS, parameters with descriptors, /clock and live rate
+changes; the loopback guard and the main() wrapper (:mod:`fdi_ros.nodes.spin`, also importable
+from here).
 
 Nodes only translate parameters and messages and own timers and lifecycle; all numbers come
 from :mod:`fdi_ros.core`.
@@ -7,7 +8,7 @@ from :mod:`fdi_ros.core`.
 
 from __future__ import annotations
 
-import os
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -20,6 +21,11 @@ from rcl_interfaces.msg import (
 )
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from fdi_ros.nodes.spin import DRAIN_S, ensure_loopback_env, run_node
+
+__all__ = ["DATA_QOS", "DRAIN_S", "LATCHED_QOS", "REQUEST_QOS", "ClockOut", "Param",
+           "declare_params", "ensure_loopback_env", "follow_rate", "run_node"]
 
 # Data streams: reliable with a deep queue, so a busy 2-core machine delays rather than drops.
 DATA_QOS = QoSProfile(depth=500, history=HistoryPolicy.KEEP_LAST,
@@ -99,22 +105,32 @@ def declare_params(node: Any, params: Sequence[Param]) -> None:
     node.add_on_set_parameters_callback(refuse)
 
 
-def ensure_loopback_env() -> None:
-    """Keep DDS discovery on this machine unless the user chose otherwise explicitly."""
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+class ClockOut:
+    """``/clock`` in plant or bag time, published by the node that owns time (or nothing when
+    ``enabled`` is false)."""
+
+    def __init__(self, node: Any, enabled: bool) -> None:
+        from rosgraph_msgs.msg import Clock
+
+        self._Clock = Clock
+        self._pub = node.create_publisher(Clock, "/clock", 10) if enabled else None
+
+    def publish(self, sec_nanosec: tuple[int, int]) -> None:
+        if self._pub is not None:
+            c = self._Clock()
+            c.clock.sec, c.clock.nanosec = sec_nanosec
+            self._pub.publish(c)
 
 
-def run_node(make_node: Callable[[], Any], *, executor_threads: int = 1,
-             on_shutdown: Callable[[Any], None] | None = None,
-             args: list[str] | None = None) -> int:
-    """Initialise rclpy, spin one node until SIGINT/SIGTERM, shut down cleanly.
+def follow_rate(node: Any, pacer: Any, name: str, now: Callable[[], float], what: str) -> None:
+    """Apply a live change of the rate parameter ``name`` to ``pacer`` (a
+    :class:`~fdi_ros.core.pacing.Pacer`) from the data time ``now()`` on, and log it."""
 
-    SIGTERM is turned into the same orderly shutdown as SIGINT, so a node killed by the
-    launcher still runs ``on_shutdown`` (the recorder closes its bag there).
-    """
-    from fdi_ros.hosting import run_nodes
+    def on_set(params: list[Any]) -> None:
+        for q in params:
+            if q.name == name:
+                t = now()
+                pacer.set_rate(float(q.value), time.monotonic(), t)
+                node.get_logger().info(f"{name} {q.value:g} from {what} {t:.3f} s")
 
-    return run_nodes(lambda: [make_node()], executor="multi" if executor_threads > 1
-                     else "single", threads=executor_threads, on_shutdown=on_shutdown,
-                     args=args)
-
+    node.add_post_set_parameters_callback(on_set)

@@ -23,8 +23,8 @@ import argparse
 import sys
 from typing import Any
 
-from fdi_ros.hosting import EXECUTORS, run_nodes
 from fdi_ros.nodes.residual_node import ResidualNode
+from fdi_ros.nodes.spin import EXECUTORS, run_nodes
 
 
 def parse_args(argv: list[str]) -> argparse.Namespace:

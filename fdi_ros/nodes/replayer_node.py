@@ -22,7 +22,15 @@ from rclpy.node import Node
 
 from fdi_ros import bag as bagio
 from fdi_ros.core.pacing import Pacer
-from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, Param, declare_params, run_node
+from fdi_ros.nodes.common import (
+    DATA_QOS,
+    LATCHED_QOS,
+    ClockOut,
+    Param,
+    declare_params,
+    follow_rate,
+    run_node,
+)
 from fdi_ros.nodes.recorder_node import _msg_class
 
 PARAMS = (
@@ -45,8 +53,6 @@ class ReplayerNode(Node):
     def __init__(self) -> None:
         super().__init__("fdi_replayer")
         declare_params(self, PARAMS)
-        from rosgraph_msgs.msg import Clock
-
         path = self.get_parameter("bag").value
         if not path:
             raise ValueError("parameter 'bag' is required")
@@ -59,9 +65,7 @@ class ReplayerNode(Node):
                 continue
             qos = LATCHED_QOS if t.startswith("/fdi/fault_") else DATA_QOS
             self._pubs[t] = self.create_publisher(_msg_class(available[t][0]), t, qos)
-        self._clock_pub = (self.create_publisher(Clock, "/clock", 10)
-                       if self.get_parameter("publish_clock").value else None)
-        self._Clock = Clock
+        self._clock_out = ClockOut(self, bool(self.get_parameter("publish_clock").value))
         from std_msgs.msg import Header
 
         self._Header = Header
@@ -70,7 +74,7 @@ class ReplayerNode(Node):
         self._it = bagio.read(path, list(self._pubs), raw=True)
         self._next: tuple | None = None
         self._pacer = Pacer(float(self.get_parameter("rate").value))
-        self.add_post_set_parameters_callback(self._on_params_set)
+        follow_rate(self, self._pacer, "rate", lambda: self._last_ns * 1e-9, "bag time")
         self._start = time.monotonic() + float(self.get_parameter("start_delay_s").value)
         self._min_subs = int(self.get_parameter("min_subscribers").value)
         self.count = 0
@@ -78,13 +82,6 @@ class ReplayerNode(Node):
         self.create_timer(0.005, self._tick)
         self.get_logger().info(f"replaying {path} ({', '.join(self._pubs)}) at rate "
                                f"{self._pacer.rate or 'max'}")
-
-    def _on_params_set(self, params: list[Any]) -> None:
-        for q in params:
-            if q.name == "rate":
-                last_s = self._last_ns * 1e-9
-                self._pacer.set_rate(float(q.value), time.monotonic(), last_s)
-                self.get_logger().info(f"rate {q.value:g} from bag time {last_s:.3f} s")
 
     def _tick(self) -> None:
         if self.done or time.monotonic() < self._start:
@@ -114,10 +111,7 @@ class ReplayerNode(Node):
                 for p in self._pubs.values():  # max rate: stay within what readers acknowledge
                     p.wait_for_all_acked()
             self._pubs[topic].publish(bytes(data))
-            if self._clock_pub is not None:
-                c = self._Clock()
-                c.clock.sec, c.clock.nanosec = divmod(t_ns, 1_000_000_000)
-                self._clock_pub.publish(c)
+            self._clock_out.publish(divmod(t_ns, 1_000_000_000))
             self.count += 1
             self._last_ns = t_ns
             self._next = None

@@ -13,7 +13,7 @@ import hashlib
 import json
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +21,7 @@ from fdi_ros.core.graphconfig import GraphConfig
 from fdi_ros.core.plant_api import FaultQueue
 from fdi_ros.core.types import FaultEvent, FeatureVector, SampleBlock
 from fdi_ros.plants import ROOT, Wing
-from fdi_ros.plants.diesel.plant import FAULT_IDS, FAULT_UNITS, DieselParams
+from fdi_ros.plants.diesel.plant import FAULT_IDS, FAULT_UNITS, crank_segmenter
 
 DEFAULT_SCENARIO = ROOT / "config" / "scenarios" / "diesel_paper_op.yaml"
 # Size at which each fault-hypothesis model is identified (mid-range of the scenarios; the
@@ -88,15 +88,17 @@ class DieselPreprocessor:
     """
 
     def __init__(self, **kwargs: Any) -> None:
-        from fdi_ros.core.crank import CrankSegmenter
-
-        p = DieselParams()
-        kwargs.setdefault("V_D", p.V_D)
-        kwargs.setdefault("R", p.R)
-        self.seg = CrankSegmenter(**kwargs)
+        self.seg = crank_segmenter(None, **kwargs)
 
     def push(self, block: SampleBlock) -> list[FeatureVector]:
         return self.seg.push(block)
+
+    def push_many(self, blocks: Sequence[SampleBlock]) -> list[FeatureVector]:
+        """The feature vectors of consecutive blocks, segmented in one pass (offline): the
+        same as pushing them one by one, since the segmenter spans block boundaries."""
+        from fdi_ros.core.crank import join_blocks
+
+        return self.seg.push_table(join_blocks(blocks)).to_features()
 
     def mark_gap(self) -> None:
         pass

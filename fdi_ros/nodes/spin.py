@@ -1,7 +1,6 @@
-"""Hosting nodes in a process: the executor kinds and the spin loop shared by every node
-process, whether it holds one node (``fdi_ros.nodes.*``) or several (the model host, as a
-component container holds components).
-"""
+"""How every fdi_ros node process runs: the loopback guard, and a main() wrapper that spins
+its nodes (one, or several for a model host, as a component container holds components) on
+one executor until SIGINT/SIGTERM and shuts them down cleanly."""
 
 from __future__ import annotations
 
@@ -15,6 +14,24 @@ from typing import Any
 
 # After a stop signal, keep executing callbacks this long for data already delivered.
 DRAIN_S = 0.3
+
+
+def ensure_loopback_env() -> None:
+    """Keep DDS discovery on this machine unless the user chose otherwise explicitly."""
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+
+def run_node(make_node: Callable[[], Any], *, executor_threads: int = 1,
+             on_shutdown: Callable[[Any], None] | None = None,
+             args: list[str] | None = None) -> int:
+    """Initialise rclpy, spin one node until SIGINT/SIGTERM, shut down cleanly.
+
+    SIGTERM is turned into the same orderly shutdown as SIGINT, so a node killed by the
+    launcher still runs ``on_shutdown`` (the recorder closes its bag there).
+    """
+    return run_nodes(lambda: [make_node()], executor="multi" if executor_threads > 1
+                     else "single", threads=executor_threads, on_shutdown=on_shutdown,
+                     args=args)
 
 
 EXECUTORS = ("single", "events", "multi")
@@ -45,7 +62,7 @@ def run_nodes(make_nodes: Callable[[], Sequence[Any]], *, executor: str = "singl
     Several nodes in one process on one executor is how a component container hosts them:
     each stays a node of its own (name, parameters, services), only the process is shared.
     """
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")  # loopback
+    ensure_loopback_env()
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions

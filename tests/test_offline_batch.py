@@ -43,18 +43,18 @@ def _simulate(doc: dict) -> tuple[list[SampleBlock], list[FaultEvent]]:
 def _scenario(name: str) -> dict:
     if name == "fault_free_transient":   # a window of the transient drive cycle
         doc = yaml.safe_load((SCENARIOS / "diesel_drive.yaml").read_text())
-        doc["duration_s"] = 14.0
+        doc["duration_s"] = 10.0
         return doc
     if name == "leak":
         doc = yaml.safe_load((SCENARIOS / "demo_diesel_leak.yaml").read_text())
-        doc["duration_s"] = 12.0
+        doc["duration_s"] = 9.0
         return doc
     rng = np.random.default_rng(SEED)    # a fault file's schedule at a random point
     files = sorted(SCENARIOS.glob("diesel_fault_*.yaml"))
     files = [f for f in files if f.name != "diesel_fault_all.yaml"]
     doc = yaml.safe_load(files[rng.integers(len(files))].read_text())
     doc["seed"] = int(rng.integers(1_000_000))
-    doc["duration_s"] = float(rng.uniform(12.0, 22.0))
+    doc["duration_s"] = float(rng.uniform(10.0, 16.0))
     doc["inputs"] = {"kind": "points", "points": [
         {"t": 0.0, "n": float(rng.uniform(1300, 2900)), "torque": float(rng.uniform(60, 170))},
         {"t": 8.0, "n": float(rng.uniform(1300, 2900)), "torque": float(rng.uniform(60, 170))}]}

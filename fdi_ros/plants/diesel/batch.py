@@ -26,7 +26,12 @@ from typing import Any
 import numpy as np
 
 from fdi_ros.core.types import FeatureVector, ResidualVector
-from fdi_ros.plants.diesel.ecu import ACTUATOR_SETTLE_S, GATED_ACTUATORS, actuator_status
+from fdi_ros.plants.diesel.ecu import (
+    ACTUATOR_MOVE,
+    ACTUATOR_SETTLE_S,
+    GATED_ACTUATORS,
+    actuator_status,
+)
 
 
 @dataclass(frozen=True)
@@ -75,6 +80,8 @@ class _Stream:
         self.cols: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._matrix: np.ndarray | None = None
         self._base: dict[int, tuple[np.ndarray, np.ndarray, list[str]]] = {}
+        self.gated: dict[Any, tuple[np.ndarray, np.ndarray, list[str]]] = {}
+        self.pos = {id(fv): k for k, fv in enumerate(self.feats)}
 
     def col(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         if name not in self.cols:
@@ -174,7 +181,7 @@ class BatchedModel:
         self.model = model
         self.model_id = model.model_id
         self.stream = stream
-        self._pos = {id(fv): k for k, fv in enumerate(stream.feats)}
+        self._pos = stream.pos
         self._names, self._units = stream.parity.names, stream.parity.units
         self._run: tuple[list[bool], list[str], list[np.ndarray], list[float]] | None = None
         self._k0 = 0
@@ -252,7 +259,11 @@ class BatchedModel:
             status[i] = (f"not valid here: transient inputs (speed moved {dn[i]:.0f} rpm, "
                          f"fuel {df[i]:.1f} mg within {c.settle_s:g} s)")
         moved = self._actuators_moved(k0, t, k, rs)
-        for i in np.flatnonzero(valid):
+        big = np.zeros(m, dtype=bool)
+        for v in moved.values():
+            with np.errstate(invalid="ignore"):
+                big |= v > ACTUATOR_MOVE
+        for i in np.flatnonzero(valid & big):   # the others have no status to give
             why = actuator_status({a: float(v[i]) for a, v in moved.items()})
             if why:
                 valid[i], status[i] = False, why
@@ -282,9 +293,19 @@ class BatchedModel:
         return out
 
     def _compute(self, k0: int) -> tuple[list[bool], list[str], list[np.ndarray], list[float]]:
-        R0, valid0, status0 = self.stream.base(self.model.models)
-        R, valid, status = self._gate(k0, R0[k0:].copy(), valid0[k0:].copy(), status0[k0:])
-        cfg = self.model.config
+        models, cfg = self.model.models, self.model.config
+        try:   # the bank's models share their reference set and thresholds: gate once
+            key: Any = (k0, id(models), cfg)
+            hash(key)
+        except TypeError:
+            key = None
+        gated = self.stream.gated.get(key) if key is not None else None
+        if gated is None:
+            R0, valid0, status0 = self.stream.base(models)
+            gated = self._gate(k0, R0[k0:].copy(), valid0[k0:].copy(), status0[k0:])
+            if key is not None:
+                self.stream.gated[key] = gated
+        R, valid, status = gated[0].copy(), gated[1].copy(), list(gated[2])
         norm = np.full(R.shape[0], np.nan)
         values = R
         if not hasattr(self.model, "directions"):   # the nominal (reference) model

@@ -30,7 +30,7 @@ def region_of(fv) -> str:
     fuel = fv.get("fuel") if "fuel" in names else np.inf
     if fuel < 4.0:
         return "overrun"
-    if egr > 0.02:
+    if egr > 0.002:   # the EGR valve's tolerance of the validity (a 1 mm hole)
         return "egr_open_flaps_closed" if swirl > 0.5 else "egr_open_flaps_open"
     return "egr_closed"
 

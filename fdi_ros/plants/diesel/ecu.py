@@ -31,9 +31,10 @@ __all__ = ["ACTUATOR_MOVE", "ACTUATOR_SETTLE_S", "GATED_ACTUATORS", "EcuSchedule
 # After an EGR or swirl command changes, the manifold's gas and the T2 sensor (time constant
 # 0.8 s) take about three seconds to settle: the static maps do not hold meanwhile (a tip-in
 # that closes the EGR valve otherwise reads as a leak for a second). Commands that moved by
-# more than ACTUATOR_MOVE within the last ACTUATOR_SETTLE_S make a segment "not valid here".
+# more than ACTUATOR_MOVE within the last ACTUATOR_SETTLE_S make a segment "not valid here"
+# (0.5 % of the EGR valve is the area of a 1.8 mm hole).
 ACTUATOR_SETTLE_S = 3.0
-ACTUATOR_MOVE = 0.02
+ACTUATOR_MOVE = 0.005
 GATED_ACTUATORS = ("egr_cmd", "swirl_cmd")
 
 

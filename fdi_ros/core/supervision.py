@@ -19,7 +19,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from fdi_ros.core.bankdriver import BankDriver, Note, label
+from fdi_ros.core.bankdriver import TIMEOUT, BankDriver, Note, label
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 # The supervisor's parameters: name: (default, description, read_only, (min, max) or None)
@@ -50,7 +50,14 @@ PARAMS = {  # name: (default, description, read_only, (min, max) or None)
     "snapshot_s": (5.0, "plant s of data before a confirmation in its snapshot bag", True,
                    (0.0, 600.0)),
     "diagnostics_period_s": (1.0, "period of /diagnostics [wall s]", True, (0.05, 60.0)),
+    "wait_for_readers": ([""], "nodes that must read /fdi/features, /fdi/residuals and "
+                         "/fdi/diagnosis before /fdi/ready (a recorder), or 'node:/topic' one "
+                         "of them (a watcher: 'fdi_launch_watcher:/fdi/diagnosis')", True, None),
+    "ready_timeout_s": (120.0, "wall s after which /fdi/ready is sent with what is still "
+                        "missing named (a source must not wait forever)", True, (0.0, 1e6)),
 }
+# topics the start-up handshake looks at (who publishes and reads them)
+GATE_TOPICS = ("/fdi/features", "/fdi/residuals", "/fdi/diagnosis")
   # diagnostic_msgs/DiagnosticStatus levels
 
 
@@ -319,6 +326,8 @@ class SupervisorCore:
         self._features: dict[int, dict] = {}
         self._symptoms: dict[int, Any] = {}
         self._stale: dict[str, str] = {}
+        # what the start-up handshake still waits for (see waiting_for; set by the node)
+        self.waiting: list[str] = ["the first check"]
         # the last snapshot_s of plant time as core records (features, residuals, diagnoses),
         # for the snapshot bag written at a confirmation
         self.snapshot_s = snapshot_s
@@ -482,6 +491,45 @@ class SupervisorCore:
             self.driver.set_desired(self.diag.models_online)
         return cleared
 
+    # -- start-up handshake (graph state) -----------------------------------------------------
+    def waiting_for(self, pubs: Mapping[str, Iterable[str]], subs: Mapping[str, Iterable[str]],
+                    matched: Mapping[str, int], readers: Iterable[str] = ()) -> list[str]:
+        """What the graph still lacks before the data source may send its first block (empty:
+        ready). The source's first segments must reach every part that decides, or the
+        filters' warm-up (symptom debounce, hypothesis windows) would end at another segment
+        than offline, and live would differ from ``fdi-ros diagnose``.
+
+        ``pubs`` / ``subs``: node names publishing / reading each of :data:`GATE_TOPICS` as
+        the graph shows them; ``matched``: the publishers *matched* to this node's own
+        subscriptions (per topic); ``readers``: nodes that must read every gate topic (a
+        recorder), or ``"node:/topic"`` only that one (a watcher of the diagnosis).
+        Needed: every on-line model confirmed active (a model refused or in a state it cannot
+        leave is out of the bank and not waited for), reading the features and publishing
+        residuals, all of them matched here; the features' publisher matched here.
+        """
+        out: list[str] = []
+        live = 0
+        for m in self.diag.models_online:
+            v = self.driver.nodes[m]
+            if v.failed and not v.failed.startswith(TIMEOUT):
+                continue
+            if not self.driver.live(m):
+                out.append(f"{v.node} {label(v.observed)} (wanted active)")
+                continue
+            live += 1
+            for topic, seen in (("/fdi/features", subs), ("/fdi/residuals", pubs)):
+                if v.node not in set(seen.get(topic, ())):
+                    out.append(f"{v.node} on {topic}")
+        if matched.get("/fdi/features", 0) < 1:
+            out.append("a publisher of /fdi/features (the preprocessor)")
+        if matched.get("/fdi/residuals", 0) < live:
+            out.append(f"{matched.get('/fdi/residuals', 0)}/{live} residual publishers matched")
+        for r in (x for x in readers if x):
+            node, _, only = r.partition(":")
+            out += [f"{node} reading {t}" for t in ((only,) if only else GATE_TOPICS)
+                    if node not in set(subs.get(t, ()))]
+        return out
+
     # -- health (wall time) -------------------------------------------------------------------
     def tick(self, now: float, ready: dict[str, bool], present: set[str] | None) -> list:
         out: list = []
@@ -522,4 +570,6 @@ class SupervisorCore:
                                  self.aligner.skipped > 0),
                  pipeline_entry(self.aligner, warn_lag)]
                 + input_entries(self.inputs, self._stale)
-                + model_entries(self.driver, self._stale))
+                + model_entries(self.driver, self._stale)
+                + [Entry(OK, "fdi_supervisor: start-up", "waiting for: " + "; ".join(
+                    self.waiting) if self.waiting else "graph ready (/fdi/ready sent)")])

@@ -14,6 +14,8 @@ from fdi_ros.core.crank import (
 )
 from fdi_ros.core.types import SampleBlock
 
+# The core knows no engine: these tests give one (a 2 L four-cylinder four-stroke, air).
+ENGINE = {"segment_deg": 180.0, "V_D": 2.0e-3, "R": 287.0}
 CH = ("n", "p2", "T2", "maf")
 UN = ("rpm", "Pa", "K", "kg/h")
 
@@ -46,7 +48,7 @@ def test_known_amplitude_and_phase_constant_speed(phase):
     t = a / (6 * 2000.0)
     maf = _sig(a, 165.0, 21.5, phase, extra=[(2, 4.0, 0.3), (3, 1.5, -2.0)])
     p2 = _sig(a, 1.5e5, 4000.0, -phase / 2, extra=[(2, 300.0, 1.0)])
-    fv = segment_features(_block(a, t, maf, p2))
+    fv = segment_features(_block(a, t, maf, p2), **ENGINE)
     assert len(fv) == 10
     for f in fv:
         assert f.valid and f.status == "ok" and f.names[:10] == FEATURE_NAMES
@@ -64,7 +66,7 @@ def test_segment_boundaries_between_samples_are_exact():
     # samples at 0.5, 1.5, ... deg CA: the segment cells are whole samples (rectangle rule)
     a = np.arange(0.5, 1000.0)
     maf = _sig(a, 100.0, 10.0, 20.0, extra=[(2, 2.0, 0.0)])
-    f = segment_features(_block(a, a / 12000, maf, maf * 1000))
+    f = segment_features(_block(a, a / 12000, maf, maf * 1000), **ENGINE)
     assert len(f) == 4 and f[0].alpha_start == 180.0
     for x in f:
         assert abs(x.get("maf_amp") - 10.0) < 1e-9 and abs(x.get("maf_phase") - 20.0) < 1e-9
@@ -76,7 +78,7 @@ def test_nonuniform_sampling_in_span_is_exact_and_ramp_within_tolerance():
     a = 6.0 * (1000.0 * tt + 0.5 * 25000.0 * tt ** 2)          # n = 1000 + 25000 t rpm
     n = 1000.0 + 25000.0 * tt
     maf = _sig(a, 165.0, 20.0, 30.0, extra=[(2, 3.0, 0.5)])
-    f = segment_features(_block(a, tt, maf, maf * 1e3, n=n))
+    f = segment_features(_block(a, tt, maf, maf * 1e3, n=n), **ENGINE)
     assert len(f) == 23
     # a mean + harmonics <= 3 signal lies in the fitted span: exact for any sampling
     assert max(abs(x.get("maf_amp") - 20.0) for x in f) < 1e-9
@@ -89,7 +91,7 @@ def test_nonuniform_sampling_in_span_is_exact_and_ramp_within_tolerance():
     a = 6.0 * (1000.0 * tt + 2500.0 * tt ** 2)
     amp = 5.0 + 0.004 * n
     maf2 = 150.0 + amp * np.cos(2 * np.pi * a / 180.0 + np.radians(60.0))
-    f2 = segment_features(_block(a, tt, maf2, maf2 * 1e3, n=n))
+    f2 = segment_features(_block(a, tt, maf2, maf2 * 1e3, n=n), **ENGINE)
     assert len(f2) == 26
     for x in f2:
         n_mid = np.interp(x.alpha_start + 90.0, a, n)
@@ -117,7 +119,7 @@ def test_fast_path_matches_slow_reference_on_noisy_signal():
     a = np.arange(0.0, 3600.0 + 1)
     maf = _sig(a, 165.0, 20.0, -40.0) + rng.normal(0, 2.0, a.size) + 0.01 * a
     ref = _slow_reference(a, maf)
-    tab = segment_table(_block(a, a / 12000, maf, maf))
+    tab = segment_table(_block(a, a / 12000, maf, maf), **ENGINE)
     assert np.allclose(tab.column("maf"), ref[:, 0], atol=1e-9)
     assert np.allclose(tab.column("maf_amp"), ref[:, 1], atol=1e-9)
     assert np.allclose(tab.column("maf_phase"), ref[:, 2], atol=1e-7)
@@ -128,9 +130,9 @@ def test_streaming_equals_batch_for_any_block_split():
     a = np.arange(0.0, 5000.0)
     maf = _sig(a, 165.0, 20.0, 10.0) + rng.normal(0, 1.0, a.size)
     p2 = _sig(a, 1.5e5, 3000.0, 50.0) + rng.normal(0, 50.0, a.size)
-    batch = segment_table(_block(a, a / 12000, maf, p2))
+    batch = segment_table(_block(a, a / 12000, maf, p2), **ENGINE)
     cuts = np.sort(rng.choice(np.arange(1, a.size - 1), size=25, replace=False))
-    seg = CrankSegmenter()
+    seg = CrankSegmenter(**ENGINE)
     got = []
     for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, a.size]):
         got += seg.push(_block(a[lo:hi], a[lo:hi] / 12000, maf[lo:hi], p2[lo:hi]))
@@ -143,7 +145,7 @@ def test_streaming_equals_batch_for_any_block_split():
 def test_eta_v_and_density_formula():
     a = np.arange(0.0, 721.0)
     maf = np.full(a.size, 165.0)
-    f = segment_features(_block(a, a / 12000, maf, np.full(a.size, 1.5e5)))[0]
+    f = segment_features(_block(a, a / 12000, maf, np.full(a.size, 1.5e5)), **ENGINE)[0]
     rho2 = 1.5e5 / (287.0 * 320.0)
     m_th = 0.5 * 2000.0 / 60.0 * 2.0e-3 * rho2 * 3600.0        # kg/h
     assert f.get("rho2") == pytest.approx(rho2, rel=1e-12)
@@ -157,7 +159,7 @@ def test_nan_and_gap_make_only_their_segments_invalid():
     maf[200] = np.nan                     # segment 1 (180..360)
     keep = (a < 700) | (a > 712)          # 12 deg CA hole inside segment 3 (540..720)
     b = _block(a[keep], a[keep] / 12000, maf[keep], maf[keep] * 1e3)
-    f = segment_features(b)
+    f = segment_features(b, **ENGINE)
     st = {x.index: (x.valid, x.status) for x in f}
     assert st[1] == (False, "nan") and st[3] == (False, "gap")
     assert st[0][0] and st[2][0] and st[4][0]
@@ -169,11 +171,11 @@ def test_one_missing_sample_is_a_gap_and_smooth_nonuniform_sampling_is_not():
     a = np.arange(0.0, 721.0)
     x = _sig(a, 165.0, 20.0, 10.0)
     keep = a != 400.0                     # one sample lost in segment 2 (360..540)
-    f = segment_features(_block(a[keep], a[keep] / 12000, x[keep], x[keep]))
+    f = segment_features(_block(a[keep], a[keep] / 12000, x[keep], x[keep]), **ENGINE)
     assert [(g.index, g.valid, g.status) for g in f] == [(0, True, "ok"), (1, True, "ok"),
                                                          (2, False, "gap"), (3, True, "ok")]
     # the same loss across a block boundary of the streaming segmenter
-    seg = CrankSegmenter()
+    seg = CrankSegmenter(**ENGINE)
     out = seg.push(_block(a[:400], a[:400] / 12000, x[:400], x[:400]))
     out += seg.push(_block(a[401:], a[401:] / 12000, x[401:], x[401:]))
     assert [g.status for g in out] == ["ok", "ok", "gap", "ok"]
@@ -181,7 +183,7 @@ def test_one_missing_sample_is_a_gap_and_smooth_nonuniform_sampling_is_not():
     tt = np.linspace(0.0, 0.2, 20001)
     aa = 6.0 * (1000.0 * tt + 12500.0 * tt ** 2)
     xx = _sig(aa, 165.0, 20.0, 10.0)
-    assert all(g.valid for g in segment_features(_block(aa, tt, xx, xx)))
+    assert all(g.valid for g in segment_features(_block(aa, tt, xx, xx), **ENGINE))
 
 
 def test_unsorted_duplicate_and_overlapping_blocks_raise():
@@ -190,12 +192,12 @@ def test_unsorted_duplicate_and_overlapping_blocks_raise():
     dup = a.copy()
     dup[50] = dup[49]
     with pytest.raises(ValueError, match="duplicate"):
-        segment_features(_block(dup, a, maf, maf))
+        segment_features(_block(dup, a, maf, maf), **ENGINE)
     uns = a.copy()
     uns[[10, 11]] = uns[[11, 10]]
     with pytest.raises(ValueError, match="decreasing"):
-        segment_features(_block(uns, a, maf, maf))
-    seg = CrankSegmenter()
+        segment_features(_block(uns, a, maf, maf), **ENGINE)
+    seg = CrankSegmenter(**ENGINE)
     assert [x.index for x in seg.push(_block(a[:200], a[:200], maf[:200], maf[:200]))] == [0]
     with pytest.raises(ValueError, match="not after"):
         seg.push(_block(a[150:300], a[150:300], maf[150:300], maf[150:300]))
@@ -208,17 +210,36 @@ def test_wrong_units_or_missing_channels_raise():
     a = np.arange(0.0, 400.0)
     x = np.ones(a.size)
     with pytest.raises(ValueError, match="kg/h"):
-        segment_features(_block(a, a, x, x, units=("rpm", "Pa", "K", "g/s")))
+        segment_features(_block(a, a, x, x, units=("rpm", "Pa", "K", "g/s")), **ENGINE)
     with pytest.raises(ValueError, match="Pa"):
-        segment_features(_block(a, a, x, x, units=("rpm", "bar", "K", "kg/h")))
+        segment_features(_block(a, a, x, x, units=("rpm", "bar", "K", "kg/h")), **ENGINE)
     b = SampleBlock(plant="diesel", index=0, t=a, alpha=a, channels=("n", "maf"),
                     units=("rpm", "kg/h"), values=np.vstack([x, x]))
     with pytest.raises(ValueError, match="missing"):
-        segment_features(b)
+        segment_features(b, **ENGINE)
 
 
 def test_too_short_or_empty_input_gives_no_segment():
     a = np.arange(10.0, 150.0)
-    assert segment_features(_block(a, a, np.ones(a.size), np.ones(a.size))) == []
-    h, nxt = crank_harmonics(np.array([0.0]), None, np.ones((1, 1)))
+    assert segment_features(_block(a, a, np.ones(a.size), np.ones(a.size)), **ENGINE) == []
+    h, nxt = crank_harmonics(np.array([0.0]), None, np.ones((1, 1)), segment_deg=180.0)
     assert h.index.size == 0 and nxt == 0
+
+
+def test_the_engine_is_given_not_assumed():
+    """No engine constants in the core: a six-cylinder four-stroke (one firing = 120 deg CA,
+    3 L) is segmented by the same code, with its own eta_v."""
+    with pytest.raises(TypeError):
+        CrankSegmenter()
+    six = {"segment_deg": 120.0, "V_D": 3.0e-3, "R": 287.0}
+    a = np.arange(0.0, 1200.0 + 1)
+    th = 2 * np.pi * a / 120.0
+    maf = 240.0 + 18.0 * np.cos(th + 0.5)
+    f = segment_features(_block(a, a / 12000, maf, np.full(a.size, 1.5e5)), **six)
+    assert len(f) == 10 and all(g.valid for g in f)
+    g = f[3]
+    assert g.get("maf_amp") == pytest.approx(18.0, rel=1e-9)
+    # phi = -a_max in deg CA of the 120 deg period: maximum at th = -0.5 rad
+    assert g.get("maf_phase") == pytest.approx(np.degrees(0.5) * 120.0 / 360.0, abs=1e-9)
+    rho2 = 1.5e5 / (287.0 * 320.0)
+    assert g.get("eta_v") == pytest.approx((240.0 / 3600.0) / (2000.0 / 120.0 * 3.0e-3 * rho2))

@@ -7,44 +7,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from toy_bank import BANK, ToyOffset, toy_config
 
 from fdi_ros.core.diagnoser import Diagnoser, diagnose_offline
+from fdi_ros.core.fst import FaultSymptomTable
 from fdi_ros.core.graphconfig import load_graph_config
-from fdi_ros.core.residual_models import register_residual_model
 from fdi_ros.core.types import FeatureVector, ResidualVector
 
-CONFIG = """
-fdi_graph:
-  plant: toy
-  t0_s: 0.5
-  bank:
-    - {id: nominal, faults: [], model: {type: toy_offset, offset: 0.0}}
-    - {id: a, faults: [a], model: {type: toy_offset, offset: 1.0}}
-    - {id: b, faults: [b], model: {type: toy_offset, offset: -1.0}}
-    - {id: a+b, faults: [a, b], model: {type: toy_offset, offset: 3.0}}
-fdi_plant:
-  ros__parameters: {plant: toy}
-"""
-
-
-class ToyOffset:
-    """Residual y - offset of one feature 'y'; norm = |residual|."""
-
-    def __init__(self, offset: float, model_id: str) -> None:
-        self.offset, self.model_id, self.resets = offset, model_id, 0
-
-    def residuals(self, fv: FeatureVector) -> ResidualVector:
-        r = fv.get("y") - self.offset
-        return ResidualVector(self.model_id, fv.index, fv.t_end, fv.valid, fv.status, ("r",),
-                              ("1",), np.array([r]), abs(r))
-
-    def reset(self) -> None:
-        self.resets += 1
-
-
-@register_residual_model("toy_offset")
-def _toy(spec: dict, *, base_dir: Path, model_id: str) -> ToyOffset:
-    return ToyOffset(float(spec["offset"]), model_id)
+CONFIG = toy_config(0.5, (*BANK, ("a+b", ("a", "b"), 3.0)),
+                    tail="fdi_plant:\n  ros__parameters: {plant: toy}\n")
 
 
 def _features(ys: list[float], dt: float = 0.1) -> list[FeatureVector]:
@@ -108,21 +79,6 @@ def test_bad_config_clear_error(tmp_path: Path, text: str, msg: str):
         load_graph_config(p)
 
 
-def test_consistent_faults_oracle():
-    from fdi_ros.core.diagnoser import consistent_faults
-
-    table = {"leak": (-1, 0, 0), "egr": (2, -1, -1), "vent": (1, 0, 0), "restr": (0, -1, 1)}
-    assert consistent_faults((-1, 0, 0), table) == ["leak"]  # exact
-    assert consistent_faults((1, 0, 0), table) == ["vent"]  # exact beats signed
-    assert consistent_faults((2, 0, 0), table) == ["vent"]  # signed
-    # one extra symptom, none of opposite sign: still the leak, never egr (opposite s_1)
-    assert consistent_faults((-1, -1, 0), table) == ["leak"]
-    assert consistent_faults((-1, -1, 0), table, max_mismatch=0) == []
-    assert consistent_faults((0, 0, 0), table) == []
-    with pytest.raises(ValueError, match="symptoms"):
-        consistent_faults((1, 0), table)
-
-
 def test_no_isolation_by_elimination(tmp_path):
     """The true fault's model is away: the least bad other hypothesis is never isolated; the
     diagnosis is 'detected, not isolable' naming the table's candidate and its absent model."""
@@ -137,14 +93,14 @@ def test_no_isolation_by_elimination(tmp_path):
     cfg_file.write_text(CONFIG.replace("  t0_s: 0.5\n", "  t0_s: 0.2\n"))
     cfg = load_graph_config(cfg_file)
     diag = Diagnoser(cfg)
-    diag.table = {"a": (-1,), "b": (1,)}
+    diag.table = FaultSymptomTable(("s_1",), {"a": (-1,), "b": (1,)})
     diag.reference_id = "nominal"
 
     class Sym:  # a symptom stage reporting s_1 = "-" from t = 1 s on
         def update(self, rv):
             from types import SimpleNamespace
             lv = (-1,) if rv.t >= 1.0 else (0,)
-            return SimpleNamespace(valid=True, levels=lv, as_table_order=lambda: lv)
+            return SimpleNamespace(valid=True, levels=lv, in_order=lambda columns: lv)
 
     diag.symptom_gen = Sym()
 

@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fdi_ros.core.crank import segment_table
 from fdi_ros.core.types import FaultEvent
 from fdi_ros.plants.diesel.plant import (
     CHANNELS,
@@ -16,6 +15,7 @@ from fdi_ros.plants.diesel.plant import (
     UNITS,
     DieselIntakePlant,
     DieselParams,
+    crank_segmenter,
     fuel_for_torque,
 )
 from fdi_ros.plants.diesel.scenario import load_cases, load_scenario, simulate
@@ -35,7 +35,7 @@ def _steady(n=2000.0, fuel=FUEL_130, *, faults=(), seconds=6.0, seed=0, noise=Tr
         plant.inject(ev)
     per_s = int(round(6.0 * n))          # deg CA per second at 1 deg CA sampling
     block = plant.advance(int(seconds * per_s))
-    tab = segment_table(block)
+    tab = crank_segmenter(plant.p).push_table(block)
     m = tab.t_start > seconds - window
     assert tab.valid[m].all()
     feats = {k: float(np.mean(tab.column(k)[m])) for k in tab.names}

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from fdi_ros.core.faultcheck import FaultRejected, check_fault_request, describe
+from fdi_ros.core.faultcheck import FaultRejected, FaultRequests, check_fault_request, describe
 from fdi_ros.core.pacing import Pacer
 from fdi_ros.plants import fault_rules
 
@@ -83,3 +83,49 @@ def test_pacer_rate_change_applies_from_then_on():
     for bad in (-1.0, math.nan, math.inf):
         with pytest.raises(ValueError):
             p.set_rate(bad, w0, 0.0)
+
+
+def test_pacer_starts_once_readers_are_there_and_the_delay_has_passed():
+    p = Pacer(2.0)
+    assert not p.start_when_ready(1.0, 0.0, readers_ok=False, delay_s=0.5)
+    assert not p.start_when_ready(2.0, 0.0, readers_ok=True, delay_s=0.5)  # delay from 2.0
+    assert not p.start_when_ready(2.4, 0.0, readers_ok=False, delay_s=0.5)  # reader gone
+    assert p.start_when_ready(2.5, 0.0, readers_ok=True, delay_s=0.5)
+    assert p.started and p.target(3.5) == pytest.approx(2.0)
+    assert p.start_when_ready(9.0, 7.0, readers_ok=False)  # started stays started
+
+
+def test_fault_requests_count_refuse_and_report():
+    from types import SimpleNamespace
+
+    from fdi_ros.core.supervision import OK, WARN
+
+    def req(fault, size=1.0, unit="mm", t_s=0.0, profile="", ramp_s=0.0, active=True):
+        return SimpleNamespace(t_s=t_s, fault=fault, size=size, size_unit=unit,
+                               profile=profile, ramp_s=ramp_s, active=active)
+
+    def check(ev):
+        if ev.size > 5.0:
+            raise ValueError(f"{ev.fault}: size {ev.size} above 5 mm")
+
+    scheduled = []
+    r = FaultRequests(("leak",), check)
+    assert r.entry("n", "p", t=0.0, rate=1.0).level == OK and r.last == "none"
+    ok, reason = r.handle(req("leak", 2.0), now=3.0, schedule=scheduled.append)
+    assert ok and reason == "scheduled: leak 2 mm at t = 3.000 s" and r.ok
+    assert [e.fault for e in scheduled] == ["leak"] and scheduled[0].t == 3.0
+    for bad, why in ((req("vent"), "unknown fault"), (req("leak", 9.0), "above 5 mm"),
+                     (req("leak", t_s=1.0), "in the past"), (req("leak", size=math.nan),
+                                                              "finite")):
+        ok, reason = r.handle(bad, now=3.0, schedule=scheduled.append)
+        assert not ok and why in reason and why in r.last and not r.ok
+    assert len(scheduled) == 1 and (r.accepted, r.rejected) == (1, 4)
+    e = r.entry("fdi_plant: fault injection", "p", t=3.0, rate=4.0)
+    assert e.level == WARN and e.message == r.last and e.hardware_id == "p"
+    assert dict(e.values) == {"plant_time_s": "3.000", "realtime_factor": "4",
+                              "accepted": "1", "rejected": "4"}
+
+    def full(ev):
+        raise ValueError("queue full")
+
+    assert r.handle(req("leak"), now=3.0, schedule=full) == (False, "queue full")

@@ -7,6 +7,7 @@ import random
 import time
 
 import pytest
+from toy_bank import toy_config
 
 from fdi_ros.core.faultmemory import FaultMemory, FaultStore
 from fdi_ros.core.supervision import (
@@ -148,16 +149,7 @@ def test_raw_header_stamp_of_serialized_blocks():
     assert math.isnan(msgs.raw_header_stamp(b"\x00\x01"))
 
 
-
-TOY = """
-fdi_graph:
-  plant: toy
-  t0_s: 0.3
-  bank:
-    - {id: nominal, faults: [], model: {type: toy_offset, offset: 0.0}}
-    - {id: a, faults: [a], model: {type: toy_offset, offset: 1.0}}
-    - {id: b, faults: [b], model: {type: toy_offset, offset: -1.0}}
-"""
+TOY = toy_config(0.3)
 
 
 def _core(tmp_path, store=None):

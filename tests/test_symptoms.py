@@ -103,10 +103,25 @@ def test_fault_symptom_table_file(tmp_path):
                  "tables:\n  x:\n    leak_ic_engine: 'o,-,o,o,o'\n")
     with pytest.raises(ValueError, match="columns"):
         load_fault_symptom_tables(p)
-    # the shipped file's paper table is the paper's Fig. 14 as typed into the code
+    # The shipped file's paper table and the one in the code are the paper's Fig. 14, checked
+    # against the figure's rows as printed (not against each other).
     shipped = load_fault_symptom_tables(ROOT / "config" / "diesel_fst.yaml")
-    assert dict(shipped["paper"]) == dict(PAPER_TABLE)
-    assert shipped["paper"].columns == SYMPTOMS
+    assert dict(shipped["paper"]) == FIG_14 and dict(PAPER_TABLE) == FIG_14
+    assert shipped["paper"].columns == SYMPTOMS == PAPER_TABLE.columns
+
+
+# Schwarte & Isermann (2002), Fig. 14, typed from the paper: columns s_eta, s_Am, s_Ap, s_phim,
+# s_php; "++" intense positive, "+" positive, "-" negative, "o" no response.
+FIG_14_PRINTED = {
+    "crankcase_vent_open": "+  o  o  o  o",     # crank case vent: pipe is open at junction
+    "leak_ic_engine": "-  o  o  o  o",          # leakage between intercooler and engine
+    "restriction_ic_engine": "o  -  -  +  +",   # restriction between intercooler and engine
+    "swirl_flap_closed": "o  -  -  o  o",       # swirl flaps actuator, filling port is closed
+    "egr_stuck_open": "++ -  -  o  o",          # EGR valve stuck at open
+    "egr_leaky": "+  o  o  o  o",               # leaky EGR valve
+}
+FIG_14 = {f: tuple({"++": 2, "+": 1, "o": 0, "-": -1}[c] for c in row.split())
+          for f, row in FIG_14_PRINTED.items()}
 
 
 def test_registry_rejects_bad_specs(tmp_path):

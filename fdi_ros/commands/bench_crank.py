@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
             times.append(time.perf_counter() - t0)
         return min(times), res
 
-    dt_fast, (h, _) = best(lambda: crank_harmonics(alpha, t, X))
+    dt_fast, (h, _) = best(lambda: crank_harmonics(alpha, t, X, segment_deg=180.0))
     n_seg = int(h.index.size)
     # baseline on a slice (it is slow); per-segment cost scales linearly
     n_base = min(N, int(rate * min(args.seconds, 5.0)) + 1)

@@ -53,6 +53,14 @@ def features_of_bag(path: str | Path) -> tuple[str, list]:
                      f"(topics: {sorted(tops)})")
 
 
+def valid_diagnosis(step) -> bool:
+    """The segment got a valid diagnosis: the reference model's symptoms were valid there (or,
+    without a symptom stage, the supervisor had enough valid residuals)."""
+    if step.symptoms is not None:
+        return bool(step.symptoms.valid)
+    return bool(step.diagnosis.state != "not_valid")
+
+
 def summarise(steps: list, plant_seconds: float, wall_seconds: float, truth: list) -> dict:
     from fdi_ros.core.events import diagnosis_events
 
@@ -84,6 +92,7 @@ def summarise(steps: list, plant_seconds: float, wall_seconds: float, truth: lis
         return None if math.isnan(t) or math.isnan(onset) else round(t - onset, 4)
 
     iso = final.isolation_time if final else math.nan
+    n_valid = sum(1 for _fv, _res, step in steps if valid_diagnosis(step))
     return {
         "segments": len(steps),
         "plant_seconds": round(plant_seconds, 3),
@@ -102,6 +111,8 @@ def summarise(steps: list, plant_seconds: float, wall_seconds: float, truth: lis
         "first_symptom_s": first_symptom,
         "models_online": list(final.models_online) if final else [],
         "invalid_segments": sum(1 for fv, _, _ in steps if not fv.valid),
+        "valid_segments": n_valid,
+        "coverage": round(n_valid / len(steps), 4) if steps else None,
         "events": events,
     }
 

@@ -42,8 +42,7 @@ def run(args: argparse.Namespace) -> int:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from fdi_ros.core.crank import segment_table
-    from fdi_ros.plants.diesel.plant import DieselIntakePlant, fuel_for_torque
+    from fdi_ros.plants.diesel.plant import DieselIntakePlant, crank_segmenter, fuel_for_torque
     from fdi_ros.plants.diesel.scenario import simulate
 
     out = Path(args.out_dir)
@@ -58,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
     n = 1200.0
     plant.set_inputs(n_rpm=n, fuel_mg=float(fuel_for_torque(n, 80.0, plant.p)))
     block = plant.advance(int(6 * n * 4))
-    tab = segment_table(block)
+    tab = crank_segmenter(plant.p).push_table(block)
     j = tab.index.size - 2
     a0 = tab.alpha_start[j]
     m = (block.alpha >= a0) & (block.alpha <= a0 + 180.0)

@@ -55,8 +55,7 @@ def plant_features(*, duration_s: float, seed: int, n_rpm: float = PAPER_N,
                    torque_nm: float = PAPER_TORQUE, faults=(), profile=None,
                    chunk_segments: int = 40) -> list:
     """Run the plant (steady inputs or a profile ``t -> (n, torque)``) and segment it."""
-    from fdi_ros.core.crank import CrankSegmenter
-    from fdi_ros.plants.diesel.plant import DieselIntakePlant, fuel_for_torque
+    from fdi_ros.plants.diesel.plant import DieselIntakePlant, crank_segmenter, fuel_for_torque
 
     plant = DieselIntakePlant(seed=seed)
     if profile is None:
@@ -69,7 +68,7 @@ def plant_features(*, duration_s: float, seed: int, n_rpm: float = PAPER_N,
     for ev in faults:
         plant.inject(ev)
     feats = []
-    seg = CrankSegmenter(V_D=plant.p.V_D, R=plant.p.R)
+    seg = crank_segmenter(plant.p)
     n_samples = int(round(180.0 / plant.dalpha)) * chunk_segments
     while True:
         block = plant.advance(n_samples)

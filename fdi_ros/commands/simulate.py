@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from fdi_ros.core.crank import CrankSegmenter
+    from fdi_ros.plants.diesel.plant import crank_segmenter
     from fdi_ros.plants.diesel.scenario import iter_simulate, load_scenario
 
     if not args.out and not args.csv:
@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         writer = bag.BagWriter(args.out)
     fh = open(args.csv, "w") if args.csv else None  # noqa: SIM115 (closed in finally)
     want_features = args.features or args.features_only
-    seg = CrankSegmenter(V_D=sc.params.V_D, R=sc.params.R) if want_features else None
+    seg = crank_segmenter(sc.params) if want_features else None
     bar = None
     if args.progress:
         from tqdm import tqdm

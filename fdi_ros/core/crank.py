@@ -1,17 +1,18 @@
-"""Crank-synchronous front end: one feature set per 180 deg CA segment.
+"""Crank-synchronous front end: one feature set per crank-angle segment of ``segment_deg``
+(one firing: 180 deg CA for a four-cylinder four-stroke engine; the engine's wing says).
 
 Signal model per segment (Schwarte & Isermann 2002, eqs. 4 and 7), alpha in deg CA::
 
-    x(alpha) = mean + A cos(2 pi alpha / 180 + phi)  (+ higher orders)
+    x(alpha) = mean + A cos(2 pi alpha / D + phi)  (+ higher orders)
 
 Segments are aligned to multiples of ``segment_deg`` of the unwrapped crank angle:
 segment j covers ``[j D, (j + 1) D]``, ``D = segment_deg``.
 
 Phase convention
 ----------------
-``phi`` is returned in deg CA (180 deg CA = one period = 2 pi), wrapped to ``[-90, 90)``. A
+``phi`` is returned in deg CA (D deg CA = one period = 2 pi), wrapped to ``[-D/2, D/2)``. A
 signal whose maximum is at ``alpha = j D + a`` has ``phi = -a`` (wrapped). Consumers that need
-another branch re-wrap with a centre (``fdi_ros.plants.diesel.reference.wrap_phase``).
+another branch re-wrap with a centre (e.g. a wing's ``wrap_phase``).
 
 Method
 ------
@@ -52,8 +53,13 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from fdi_ros.core.types import FeatureVector, SampleBlock
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+StrArray = NDArray[np.str_]
 
 FEATURE_NAMES = ("n", "rho2", "p2", "T2", "maf", "maf_amp", "maf_phase", "p2_amp", "p2_phase",
                  "eta_v")
@@ -83,14 +89,16 @@ class CrankHarmonics:
     valid: np.ndarray
     status: np.ndarray
 
-    def amplitude(self, k: int = 1) -> np.ndarray:
+    def amplitude(self, k: int = 1) -> FloatArray:
         """(C, S) amplitude of harmonic k."""
-        return np.hypot(self.coef[..., 2 * k - 1], self.coef[..., 2 * k])
+        amp: FloatArray = np.hypot(self.coef[..., 2 * k - 1], self.coef[..., 2 * k])
+        return amp
 
-    def phase_deg(self, k: int = 1, segment_deg: float = 180.0) -> np.ndarray:
+    def phase_deg(self, k: int, segment_deg: float) -> FloatArray:
         """(C, S) phase of harmonic k in deg CA of that harmonic's period, in [-P/2, P/2)."""
         period = segment_deg / k
-        ph = np.arctan2(-self.coef[..., 2 * k], self.coef[..., 2 * k - 1]) * period / (2 * np.pi)
+        ph: FloatArray = np.arctan2(-self.coef[..., 2 * k], self.coef[..., 2 * k - 1])
+        ph = ph * period / (2 * np.pi)
         return (ph + period / 2.0) % period - period / 2.0
 
 
@@ -125,7 +133,7 @@ def _check_order(alpha: np.ndarray, t: np.ndarray | None) -> np.ndarray:
 
 
 def crank_harmonics(alpha: np.ndarray, t: np.ndarray | None, values: np.ndarray, *,
-                    segment_deg: float = 180.0, n_harmonics: int = 3,
+                    segment_deg: float, n_harmonics: int = 3,
                     max_gap_deg: float | None = None, alpha_prev: float | None = None,
                     first_segment: int | None = None) -> tuple[CrankHarmonics, int]:
     """Fit mean and harmonics per complete segment (vectorised; see the module docstring).
@@ -205,10 +213,12 @@ def crank_harmonics(alpha: np.ndarray, t: np.ndarray | None, values: np.ndarray,
     return out, j_end
 
 
-_UNIFORM_CACHE: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+# (samples per segment, D, K, first offset, step, half first weight) -> (w phi, G^-1)
+_CacheKey = tuple[int, float, int, float, float, bool]
+_UNIFORM_CACHE: dict[_CacheKey, tuple[FloatArray, FloatArray]] = {}
 
 
-def _gap_steps(d: np.ndarray, max_gap_deg: float | None) -> np.ndarray:
+def _gap_steps(d: FloatArray, max_gap_deg: float | None) -> BoolArray:
     """Mask of crank-angle steps that are gaps.
 
     With ``max_gap_deg`` the rule is absolute. Otherwise a step is a gap when it is more than
@@ -216,16 +226,20 @@ def _gap_steps(d: np.ndarray, max_gap_deg: float | None) -> np.ndarray:
     doubles a step, while sampling that is only smoothly non-uniform (equidistant in time
     during a speed ramp) changes from step to step by far less.
     """
+    gap: BoolArray
     if max_gap_deg is not None:
-        return d > float(max_gap_deg)
-    if d.size < 2:
-        return np.zeros(d.size, bool)
-    left = np.concatenate([[np.inf], d[:-1]])
-    right = np.concatenate([d[1:], [np.inf]])
-    return d > 1.5 * np.minimum(left, right)
+        gap = d > float(max_gap_deg)
+    elif d.size < 2:
+        gap = np.zeros(d.size, bool)
+    else:
+        left = np.concatenate([[np.inf], d[:-1]])
+        right = np.concatenate([d[1:], [np.inf]])
+        gap = d > 1.5 * np.minimum(left, right)
+    return gap
 
 
-def _uniform(alpha, values, j0, S, D, K, h, i_first):
+def _uniform(alpha: FloatArray, values: FloatArray, j0: int, S: int, D: float, K: int, h: float,
+             i_first: int) -> tuple[FloatArray, StrArray]:
     """Uniform grid: one weight vector and one (diagonal-ish) Gram matrix for all segments."""
     m = int(round(D / h))
     s0 = j0 * D
@@ -260,7 +274,8 @@ def _uniform(alpha, values, j0, S, D, K, h, i_first):
     return coef, status
 
 
-def _general(alpha, values, j0, S, D, K, alpha_prev):
+def _general(alpha: FloatArray, values: FloatArray, j0: int, S: int, D: float, K: int,
+             alpha_prev: float | None) -> tuple[FloatArray, StrArray]:
     """Any sampling: clipped cells, contributions split at boundaries, batched 2K+1 solves."""
     N = alpha.size
     P = 1 + 2 * K
@@ -384,8 +399,10 @@ class CrankSegmenter:
 
     Parameters
     ----------
-    segment_deg : segment length [deg CA] (180 for a 4-cylinder four-stroke engine).
+    segment_deg : segment length [deg CA]: one firing, 720 / cylinders for a four-stroke.
     V_D : displacement [m^3]; R : gas constant [J/(kg K)] for rho2 and eta_v.
+    The engine's wing gives all three (its parameters are their one source); the core
+    assumes no engine.
     n_harmonics : harmonics fitted jointly (1..K) to keep higher orders out of the first.
     max_gap_deg : largest crank-angle step that is not a gap (default: relative rule, a step
         more than 1.5 x the smaller neighbouring step is a gap).
@@ -395,8 +412,8 @@ class CrankSegmenter:
     previous block's last crank angle, raises ValueError and leaves the state unchanged.
     """
 
-    def __init__(self, *, segment_deg: float = 180.0, V_D: float = 2.0e-3, R: float = 287.0,
-                 n_harmonics: int = 3, max_gap_deg: float | None = None) -> None:
+    def __init__(self, *, segment_deg: float, V_D: float, R: float, n_harmonics: int = 3,
+                 max_gap_deg: float | None = None) -> None:
         if not (np.isfinite(segment_deg) and segment_deg > 0):
             raise ValueError("segment_deg must be > 0")
         if not (V_D > 0 and R > 0):
@@ -438,12 +455,12 @@ class CrankSegmenter:
         T = np.concatenate([self._t, t])
         V = block.values if self._vals is None else np.concatenate([self._vals, block.values],
                                                                     axis=1)
+        h: CrankHarmonics | None = None
+        nxt: int | None = self._next_seg
         if A.size >= 2:
             h, nxt = crank_harmonics(A, T, V, segment_deg=self.D, n_harmonics=self.K,
                                      max_gap_deg=self.max_gap, alpha_prev=self._prev,
                                      first_segment=self._next_seg)
-        else:
-            h, nxt = None, self._next_seg
         if nxt is None:
             nxt = int(math.ceil(A[0] / self.D - 1e-12))
         # keep the samples of the unfinished segment (and the one before, for its cell)
@@ -474,8 +491,8 @@ def _empty_table(plant: str) -> SegmentTable:
                         values=np.zeros((0, len(FEATURE_NAMES))))
 
 
-def segment_table(block: SampleBlock, *, segment_deg: float = 180.0, V_D: float = 2.0e-3,
-                  R: float = 287.0, n_harmonics: int = 3,
+def segment_table(block: SampleBlock, *, segment_deg: float, V_D: float, R: float,
+                  n_harmonics: int = 3,
                   max_gap_deg: float | None = None) -> SegmentTable:
     """Features of all complete segments of one block, as arrays."""
     seg = CrankSegmenter(segment_deg=segment_deg, V_D=V_D, R=R, n_harmonics=n_harmonics,
@@ -483,8 +500,8 @@ def segment_table(block: SampleBlock, *, segment_deg: float = 180.0, V_D: float 
     return seg.push_table(block)
 
 
-def segment_features(block: SampleBlock, *, segment_deg: float = 180.0, V_D: float = 2.0e-3,
-                     R: float = 287.0, n_harmonics: int = 3,
+def segment_features(block: SampleBlock, *, segment_deg: float, V_D: float, R: float,
+                     n_harmonics: int = 3,
                      max_gap_deg: float | None = None) -> list[FeatureVector]:
     """Feature vectors of all complete segments of one block (see the module docstring)."""
     return segment_table(block, segment_deg=segment_deg, V_D=V_D, R=R,

@@ -10,12 +10,14 @@ replayed through the graph and the same bag diagnosed offline give the same answ
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
-from typing import Any
 
+from fdi_ros.core.fst import FaultSymptomTable, isolate, load_fault_symptom_tables
 from fdi_ros.core.graphconfig import GraphConfig
+from fdi_ros.core.residual_models import ResidualModel, load_residual_model
 from fdi_ros.core.supervisor import ExpertSupervisor
+from fdi_ros.core.symptoms import SymptomConfig, SymptomGenerator, SymptomState, load_thresholds
 from fdi_ros.core.types import Diagnosis, FeatureVector, ResidualVector
 
 
@@ -24,53 +26,24 @@ class Step:
     """Result of one diagnosis step."""
 
     diagnosis: Diagnosis
-    symptoms: Any  # SymptomState of the reference model, or None (no symptom stage)
+    symptoms: SymptomState | None  # of the reference model (None: no symptom stage)
     switched: bool  # the set of on-line models changed at this step
     added: tuple[str, ...] = ()
     removed: tuple[str, ...] = ()
 
 
-def consistent_faults(observed: Sequence[int], table: Mapping[str, Sequence[int]], *,
-                      max_mismatch: int = 1) -> list[str]:
-    """Faults of a fault-symptom table that the observed symptom levels do not contradict.
-
-    Exact matches first, then matches in sign (``+`` == ``++``); when there is neither, the
-    faults whose signature has no symptom of the opposite sign to an observed one and differs
-    in at most ``max_mismatch`` symptoms (one missing or extra). No symptom -> no candidate.
-    A fault outside this list cannot explain the residuals, however small its model's residual.
-    """
-    obs = [int(v) for v in observed]
-    if not any(obs):
-        return []
-    exact, signed, near = [], [], []
-    for fault, sig in table.items():
-        sig = [int(v) for v in sig]
-        if len(sig) != len(obs):
-            raise ValueError(f"signature of {fault} has {len(sig)} symptoms, observed "
-                             f"{len(obs)}")
-        signs = [(a > 0) - (a < 0) for a in sig], [(b > 0) - (b < 0) for b in obs]
-        if sig == obs:
-            exact.append(fault)
-        elif signs[0] == signs[1]:
-            signed.append(fault)
-        elif all(a * b >= 0 for a, b in zip(*signs)) and \
-                sum(a != b for a, b in zip(*signs)) <= max_mismatch:
-            near.append(fault)
-    return exact or signed or near
-
-
-def _make_symptom_stage(cfg: GraphConfig) -> tuple[Any, Any, str]:
+def _make_symptom_stage(cfg: GraphConfig
+                        ) -> tuple[SymptomGenerator | None, FaultSymptomTable | None, str]:
     """(SymptomGenerator, fault-symptom table or None, reference model id) from the config."""
     if not cfg.symptoms:
         return None, None, ""
-    from fdi_ros.core.fst import load_fault_symptom_tables
-    from fdi_ros.core.symptoms import SymptomGenerator, load_thresholds
-
     s = cfg.symptoms
     conf = s.get("config")
     if isinstance(conf, str):
         conf = load_thresholds(cfg.resolve(conf))
-    elif not isinstance(conf, dict):
+    elif isinstance(conf, dict):
+        conf = SymptomConfig.from_dict(conf)
+    else:
         raise ValueError(f"{cfg.path}: symptoms.config must be a mapping or a file")
     table = None
     if s.get("table"):
@@ -109,14 +82,14 @@ class Diagnoser:
             return (self.reference_id, *online)
         return online
 
-    def symptoms_of(self, ref: ResidualVector) -> Any:
+    def symptoms_of(self, ref: ResidualVector) -> SymptomState | None:
         """Symptoms of the reference model's residuals (stateful: call once per index, in
         order). The live node calls this as soon as the reference residual arrives, so the
         symptom is published without waiting for the rest of the bank."""
         return self.symptom_gen.update(ref) if self.symptom_gen is not None else None
 
     def update(self, index: int, t: float, residuals: Mapping[str, ResidualVector], *,
-               symptoms: Any = None) -> Step:
+               symptoms: SymptomState | None = None) -> Step:
         """One step. ``symptoms``: the result of :meth:`symptoms_of` for this index when the
         caller computed it already (otherwise it is computed here from ``residuals``)."""
         before = self.models_online
@@ -133,11 +106,13 @@ class Diagnoser:
                 # or restarting after an external lifecycle change).
                 feed = {}
             active = symptoms is not None and symptoms.valid and any(symptoms.levels)
-            if active and self.table is not None:
-                cols = getattr(self.table, "columns", None)
+            if symptoms is not None and active and self.table is not None:
+                cols = self.table.columns
                 observed = symptoms.in_order(cols) if cols else tuple(symptoms.levels)
-                candidates = tuple(consistent_faults(observed, self.table,
-                                                     max_mismatch=self.max_mismatch))
+                # The faults the symptoms do not contradict: a fault outside this list
+                # cannot explain the residuals, however small its model's residual.
+                candidates = tuple(isolate(observed, self.table, max_mismatch=self.max_mismatch,
+                                           opposite="exclude", keep="all"))
             if not self.supervisor.isolated:
                 if not active:
                     # No symptom: the reference model explains the data by definition; the
@@ -194,15 +169,13 @@ class Diagnoser:
 
 
 def diagnose_offline(cfg: GraphConfig, features: Iterable[FeatureVector], *,
-                     models: Mapping[str, Any] | None = None,
-                     progress: bool = False) -> list[tuple[FeatureVector, dict, Step]]:
+                     models: Mapping[str, ResidualModel] | None = None, progress: bool = False
+                     ) -> list[tuple[FeatureVector, dict[str, ResidualVector], Step]]:
     """Run the whole bank and the diagnoser over feature vectors (no ROS, many x real time).
 
     Only the models on line at each step are evaluated, as in the live graph; a model taken on
     line after an isolation is reset first, as the live residual node is on activation.
     """
-    from fdi_ros.core.residual_models import load_residual_model
-
     if models is None:
         models = {e.id: load_residual_model(cfg.resolve_spec(e.model), model_id=e.id)
                   for e in cfg.bank}

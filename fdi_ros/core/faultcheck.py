@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
+from fdi_ros.core.supervision import OK, WARN, Entry
 from fdi_ros.core.supervisor import fault_type
 from fdi_ros.core.types import FaultEvent
 
@@ -94,3 +96,43 @@ def describe(event: FaultEvent) -> str:
     ramp = f", ramp over {event.ramp_s:g} s" if event.profile == "ramp" else ""
     size = f" {event.size:g} {event.size_unit}".rstrip() if event.size or event.size_unit else ""
     return f"{event.fault}{size} at t = {event.t:.3f} s{ramp}"
+
+
+@dataclass
+class FaultRequests:
+    """The run-time fault requests of one plant: each checked, scheduled or refused, counted,
+    and reported as one /diagnostics entry (the plant node only moves the messages).
+
+    ``faults`` and ``plant_check`` as for :func:`check_fault_request`.
+    """
+
+    faults: Sequence[str] = ()
+    plant_check: Callable[[FaultEvent], None] | None = None
+    accepted: int = 0
+    rejected: int = 0
+    last: str = "none"  # the outcome of the last request, as logged
+    ok: bool = True  # the last request was accepted (or there was none)
+
+    def handle(self, m: Any, *, now: float, schedule: Callable[[FaultEvent], None]
+               ) -> tuple[bool, str]:
+        """Check request ``m`` (the fields of a ``fdi_msgs/FaultEvent``) at plant time ``now``
+        and hand it to ``schedule``: (accepted, reason for the requester). :attr:`last` holds
+        the line to log."""
+        try:
+            ev = check_fault_request(m.t_s, m.fault, m.size, m.size_unit, m.profile, m.ramp_s,
+                                     m.active, now=now, faults=self.faults,
+                                     plant_check=self.plant_check)
+            schedule(ev)
+        except ValueError as exc:  # FaultRejected, or the plant refusing to schedule
+            self.rejected += 1
+            self.last, self.ok = f"fault request {m.fault!r} refused: {exc}", False
+            return False, str(exc)
+        self.accepted += 1
+        self.last, self.ok = f"scheduled: {describe(ev)}", True
+        return True, self.last
+
+    def entry(self, name: str, plant: str, *, t: float, rate: float) -> Entry:
+        """The /diagnostics entry: WARN after a refused request, with the counts."""
+        return Entry(OK if self.ok else WARN, name, self.last, plant,
+                     (("plant_time_s", f"{t:.3f}"), ("realtime_factor", f"{rate:g}"),
+                      ("accepted", str(self.accepted)), ("rejected", str(self.rejected))))

@@ -10,14 +10,18 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
+from numpy.typing import NDArray
 
 __all__ = ["LEVEL_CODES", "FaultSymptomTable", "isolate", "load_fault_symptom_tables",
            "parse_signature", "signature_string"]
 
 LEVEL_CODES = {"-": -1, "o": 0, "+": 1, "++": 2}
 _CODE_OF = {v: k for k, v in LEVEL_CODES.items()}
+Opposite = Literal["double", "exclude"]
+Keep = Literal["nearest", "all"]
 
 
 def signature_string(levels: Sequence[int]) -> str:
@@ -39,7 +43,7 @@ class FaultSymptomTable(dict[str, tuple[int, ...]]):
 
 
 def _observed(symptom_levels: Sequence[int] | Mapping[str, int],
-              columns: Sequence[str] | None) -> np.ndarray:
+              columns: Sequence[str] | None) -> NDArray[np.int_]:
     if isinstance(symptom_levels, Mapping):
         if columns is None:
             raise ValueError("symptoms by name need a table with named columns")
@@ -53,33 +57,54 @@ def _observed(symptom_levels: Sequence[int] | Mapping[str, int],
 
 def isolate(symptom_levels: Sequence[int] | Mapping[str, int],
             table: Mapping[str, Sequence[int]], *, max_mismatch: int = 0,
-            columns: Sequence[str] | None = None) -> list[str]:
-    """Candidate faults whose table signature matches the symptoms.
+            columns: Sequence[str] | None = None, opposite: Opposite = "double",
+            keep: Keep = "nearest") -> list[str]:
+    """Candidate faults whose table signature matches the symptoms (the one matcher).
 
     ``symptom_levels`` in the table's column order, or a mapping by symptom name (``columns``,
-    default the table's own). Exact matches first; if there is none, faults whose signature
-    matches in sign (``+`` == ``++``); if there is none and ``max_mismatch > 0``, the faults at
-    the smallest distance, if it is at most ``max_mismatch`` (distance: sum over symptoms of
-    |sign(table) - sign(observed)|, so a symptom missing or extra counts 1, one of opposite
-    sign 2). No symptom -> no candidate.
+    default the table's own). No symptom -> no candidate. Otherwise, in this order:
+
+    1. the exact matches;
+    2. if there is none, the matches in sign (``+`` == ``++``);
+    3. if there is none and ``max_mismatch > 0``, the near matches. The distance of a
+       signature is the sum over symptoms of ``|sign(table) - sign(observed)|``: a symptom
+       missing or extra counts 1, one of the opposite sign 2. ``opposite="exclude"`` drops
+       every signature with a symptom of the opposite sign to an observed one first (it
+       contradicts the residuals). ``keep="nearest"``: the faults at the smallest distance,
+       if it is at most ``max_mismatch``; ``keep="all"``: every fault within
+       ``max_mismatch``.
+
+    The table isolation of the reproductions uses the defaults (``"double"``, ``"nearest"``);
+    the live diagnoser asks for the faults the symptoms do not contradict (``"exclude"``,
+    ``"all"``), since a fault outside that list cannot explain the residuals.
     """
-    obs = _observed(symptom_levels, columns or getattr(table, "columns", None))
+    if opposite not in ("double", "exclude") or keep not in ("nearest", "all"):
+        raise ValueError(f"opposite must be 'double' or 'exclude' and keep 'nearest' or 'all', "
+                         f"not {opposite!r}, {keep!r}")
+    levels = _observed(symptom_levels, columns or getattr(table, "columns", None))
+    obs = np.sign(levels)
     if not obs.any():
         return []
-    exact, signed, dist = [], [], {}
+    exact: list[str] = []
+    signed: list[str] = []
+    dist: dict[str, int] = {}
     for fault, row in table.items():
         sig = np.asarray(row, dtype=int)
         if sig.shape != obs.shape:
             raise ValueError(f"signature of {fault} has {sig.size} symptoms, observed {obs.size}")
-        if np.array_equal(sig, obs):
+        if np.array_equal(sig, levels):
             exact.append(fault)
-        elif np.array_equal(np.sign(sig), np.sign(obs)):
+        elif np.array_equal(np.sign(sig), obs):
             signed.append(fault)
-        # A symptom of opposite sign weighs 2, a missing or extra one 1.
-        dist[fault] = int(np.sum(np.abs(np.sign(sig) - np.sign(obs))))
+        diff = np.abs(np.sign(sig) - obs)
+        if opposite == "exclude" and np.any(diff == 2):
+            continue
+        dist[fault] = int(np.sum(diff))
     if exact or signed or max_mismatch <= 0:
         return exact or signed
-    best = min(dist.values())
+    if keep == "all":
+        return [f for f, d in dist.items() if d <= max_mismatch]
+    best = min(dist.values(), default=max_mismatch + 1)
     return [f for f, d in dist.items() if d == best] if best <= max_mismatch else []
 
 

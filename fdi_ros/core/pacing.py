@@ -22,6 +22,7 @@ class Pacer:
         self.rate = self._checked(rate)
         self._wall0: float | None = None
         self._t0 = 0.0
+        self._ready_at: float | None = None
 
     @staticmethod
     def _checked(rate: float) -> float:
@@ -37,6 +38,21 @@ class Pacer:
     def start(self, wall: float, t_plant: float) -> None:
         """Plant time ``t_plant`` corresponds to wall time ``wall`` from now on."""
         self._wall0, self._t0 = float(wall), float(t_plant)
+
+    def start_when_ready(self, wall: float, t_plant: float, *, readers_ok: bool,
+                         delay_s: float = 0.0) -> bool:
+        """Start once the readers are there (``readers_ok``) and, from the first time they
+        were, ``delay_s`` wall seconds have passed; True once started. No reader, no start."""
+        if self.started:
+            return True
+        if not readers_ok:
+            return False
+        if self._ready_at is None:
+            self._ready_at = float(wall) + float(delay_s)
+        if wall < self._ready_at:
+            return False
+        self.start(wall, t_plant)
+        return True
 
     def set_rate(self, rate: float, wall: float, t_plant: float) -> None:
         """Switch to ``rate`` at wall time ``wall``, where the plant is at ``t_plant``."""

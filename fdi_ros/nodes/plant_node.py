@@ -6,15 +6,15 @@ by ``realtime_factor`` x the elapsed wall time (0 = as fast as the graph takes i
 applies from that moment on, see :class:`fdi_ros.core.pacing.Pacer`); every block is published on
 ``/fdi/sensor_block`` and plant time on ``/clock`` (the other nodes may run on it with
 ``use_sim_time``; the plant itself keeps wall time). Every message is stamped in plant time.
-Plant time starts at the source gate (:class:`fdi_ros.nodes.common.SourceGate`: matched
+Plant time starts at the source gate (:class:`fdi_ros.nodes.startup.SourceGate`: matched
 readers, the supervisor's ``/fdi/ready``); at the scenario's end the plant publishes the
 end-of-data event on ``/fdi/end_of_data``.
 
 Faults are injected at run time on ``/fdi/fault_inject`` (reliable, volatile: default and
 transient-local publishers both match) and through the service ``/fdi/inject_fault``
-(``fdi_msgs/srv/InjectFault``: accepted + reason); ``t_s`` <= 0 means "now". A request is
-checked first (:func:`fdi_ros.core.faultcheck.check_fault_request` against the plant's fault
-list and limits): a malformed one is refused with the reason (logged once, on ``/diagnostics``,
+(``fdi_msgs/srv/InjectFault``: accepted + reason); ``t_s`` <= 0 means "now". Each request is
+checked against the plant's fault list and limits (:class:`fdi_ros.core.faultcheck.
+FaultRequests`): a malformed one is refused with the reason (logged once, on ``/diagnostics``,
 in the service reply) and the plant runs on. Each fault that takes effect is published on
 ``/fdi/fault_truth`` (transient-local, so late joiners and the recorder see it).
 """
@@ -28,18 +28,20 @@ from typing import Any
 from rclpy.node import Node
 
 from fdi_ros import msgs
-from fdi_ros.core.faultcheck import FaultRejected, check_fault_request, describe
+from fdi_ros.core.faultcheck import FaultRequests, describe
 from fdi_ros.core.pacing import Pacer
 from fdi_ros.nodes.common import (
     DATA_QOS,
     LATCHED_QOS,
     REQUEST_QOS,
-    SOURCE_PARAMS,
+    ClockOut,
     Param,
-    SourceGate,
     declare_params,
+    follow_rate,
     run_node,
 )
+from fdi_ros.nodes.startup import SOURCE_PARAMS, SourceGate
+from fdi_ros.plants import fault_rules, make_runner
 
 
 def _rate_check(v: float) -> str | None:
@@ -69,26 +71,20 @@ class PlantNode(Node):
         from diagnostic_msgs.msg import DiagnosticArray
         from fdi_msgs.msg import FaultEvent, SensorBlock
         from fdi_msgs.srv import InjectFault
-        from rosgraph_msgs.msg import Clock
-
-        from fdi_ros.plants import fault_rules, make_runner
 
         p = self.get_parameter
         plant = p("plant").value
         self.runner = make_runner(plant, p("scenario").value or None, seed=int(p("seed").value))
-        self._faults, self._plant_check = fault_rules(plant)
+        self._requests = FaultRequests(*fault_rules(plant))
         self._fac = msgs.MessageFactory("rclpy")
         self._pub = self.create_publisher(SensorBlock, "/fdi/sensor_block", DATA_QOS)
         self._truth = self.create_publisher(FaultEvent, "/fdi/fault_truth", LATCHED_QOS)
-        self._clock_pub = (self.create_publisher(Clock, "/clock", 10)
-                           if p("publish_clock").value else None)
-        self._Clock = Clock
+        self._clock_out = ClockOut(self, bool(p("publish_clock").value))
         self._diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self._requests = {"accepted": 0, "rejected": 0, "last": "none", "ok": True}
         self.create_subscription(FaultEvent, "/fdi/fault_inject", self._on_inject, REQUEST_QOS)
         self.create_service(InjectFault, "/fdi/inject_fault", self._on_inject_service)
         self._pacer = Pacer(float(p("realtime_factor").value))
-        self.add_post_set_parameters_callback(self._on_params_set)
+        follow_rate(self, self._pacer, "realtime_factor", lambda: self.runner.t, "t =")
         self._gate = SourceGate(self, self._pub)
         self._finished, self._sent = False, 0
         self.create_timer(0.01, self._tick)
@@ -96,34 +92,15 @@ class PlantNode(Node):
         self.get_logger().info(f"plant {self.runner.plant!r} ready, scenario "
                                f"{p('scenario').value or '(default)'}")
 
-    # -- parameters -----------------------------------------------------------------------------
-    def _on_params_set(self, params: list[Any]) -> None:
-        for q in params:
-            if q.name == "realtime_factor":
-                self._pacer.set_rate(float(q.value), time.monotonic(), self.runner.t)
-                self.get_logger().info(f"realtime_factor {q.value:g} from t = "
-                                       f"{self.runner.t:.3f} s")
-
-    # -- fault injection ------------------------------------------------------------------------
+    # -- fault injection (checked, counted and reported by core/faultcheck) ---------------------
     def _request(self, m: Any) -> tuple[bool, str]:
-        """Check and schedule one request; the outcome is logged and reported once."""
-        try:
-            ev = check_fault_request(m.t_s, m.fault, m.size, m.size_unit, m.profile, m.ramp_s,
-                                     m.active, now=self.runner.t, faults=self._faults,
-                                     plant_check=self._plant_check)
-            self.runner.inject(ev)
-        except (FaultRejected, ValueError) as exc:
-            reason = f"fault request {m.fault!r} refused: {exc}"
-            self._requests.update(rejected=self._requests["rejected"] + 1, last=reason, ok=False)
-            self.get_logger().error(reason)
-            self._publish_diagnostics()
-            return False, str(exc)
-        what = describe(ev)
-        self._requests.update(accepted=self._requests["accepted"] + 1,
-                              last=f"scheduled: {what}", ok=True)
-        self.get_logger().info(f"fault injection accepted: {what}")
+        ok, reason = self._requests.handle(m, now=self.runner.t, schedule=self.runner.inject)
+        if ok:
+            self.get_logger().info(f"fault injection {reason}")
+        else:
+            self.get_logger().error(self._requests.last)
         self._publish_diagnostics()
-        return True, f"scheduled: {what}"
+        return ok, reason
 
     def _on_inject(self, m: Any) -> None:
         self._request(m)
@@ -133,30 +110,17 @@ class PlantNode(Node):
         return response
 
     def _publish_diagnostics(self) -> None:
-        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-
-        r = self._requests
-        st = DiagnosticStatus(
-            level=DiagnosticStatus.OK if r["ok"] else DiagnosticStatus.WARN,
-            name=f"{self.get_name()}: fault injection", hardware_id=self.runner.plant,
-            message=str(r["last"]),
-            values=[KeyValue(key="plant_time_s", value=f"{self.runner.t:.3f}"),
-                    KeyValue(key="realtime_factor", value=f"{self._pacer.rate:g}"),
-                    KeyValue(key="accepted", value=str(r["accepted"])),
-                    KeyValue(key="rejected", value=str(r["rejected"]))])
-        arr = DiagnosticArray(status=[st])
-        arr.header.stamp.sec, arr.header.stamp.nanosec = msgs.stamp_fields(self.runner.t)
-        self._diag.publish(arr)
+        e = self._requests.entry(f"{self.get_name()}: fault injection", self.runner.plant,
+                                 t=self.runner.t, rate=self._pacer.rate)
+        self._diag.publish(msgs.diagnostic_array([e], self.runner.t))
 
     # -- plant time -----------------------------------------------------------------------------
     def _tick(self) -> None:
         if self._finished:
             return
         now = time.monotonic()
-        if not self._gate.check(now):
+        if not self._gate.check(now, self._pacer, self.runner.t):
             return  # nothing published into the void (see SourceGate)
-        if not self._pacer.started:
-            self._pacer.start(now, self.runner.t)
         target = self._pacer.target(now)
         for _ in range(int(self.get_parameter("max_blocks_per_tick").value)):
             if self.runner.done:
@@ -172,10 +136,7 @@ class PlantNode(Node):
                 self.get_logger().info(f"fault active: {describe(ev)}")
             self._pub.publish(self._fac.sensor_block(block))
             self._sent += 1
-            if self._clock_pub is not None:
-                c = self._Clock()
-                c.clock.sec, c.clock.nanosec = msgs.stamp_fields(float(block.t[-1]))
-                self._clock_pub.publish(c)
+            self._clock_out.publish(msgs.stamp_fields(float(block.t[-1])))
 
 
 def main(args: list[str] | None = None) -> int:

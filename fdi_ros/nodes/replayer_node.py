@@ -5,7 +5,7 @@ preprocessor, residual generators and supervisor run again on recorded measureme
 
 Parameters: ``bag`` (required), ``rate`` (1.0; 0 = as fast as the graph acknowledges; a live
 change applies from that moment on), ``topics`` (default: /fdi/sensor_block, /fdi/fault_truth),
-``publish_clock``, and the start gate of every source (:class:`fdi_ros.nodes.common.SourceGate`:
+``publish_clock``, and the start gate of every source (:class:`fdi_ros.nodes.startup.SourceGate`:
 ``min_subscribers`` matched readers, ``wait_for_ready`` the supervisor's ``/fdi/ready``,
 ``start_delay_s``).
 
@@ -26,13 +26,14 @@ from fdi_ros.core.pacing import Pacer
 from fdi_ros.nodes.common import (
     DATA_QOS,
     LATCHED_QOS,
-    SOURCE_PARAMS,
+    ClockOut,
     Param,
-    SourceGate,
     declare_params,
+    follow_rate,
     run_node,
 )
 from fdi_ros.nodes.recorder_node import _msg_class
+from fdi_ros.nodes.startup import SOURCE_PARAMS, SourceGate
 
 PARAMS = (
     Param("bag", "", "bag directory to replay (rosbag2, MCAP); required", read_only=True),
@@ -49,8 +50,6 @@ class ReplayerNode(Node):
     def __init__(self) -> None:
         super().__init__("fdi_replayer")
         declare_params(self, PARAMS)
-        from rosgraph_msgs.msg import Clock
-
         path = self.get_parameter("bag").value
         if not path:
             raise ValueError("parameter 'bag' is required")
@@ -63,14 +62,13 @@ class ReplayerNode(Node):
                 continue
             qos = LATCHED_QOS if t.startswith("/fdi/fault_") else DATA_QOS
             self._pubs[t] = self.create_publisher(_msg_class(available[t][0]), t, qos)
-        self._clock_pub = (self.create_publisher(Clock, "/clock", 10)
-                       if self.get_parameter("publish_clock").value else None)
-        self._Clock = Clock
+        self._clock_out = ClockOut(self, bool(self.get_parameter("publish_clock").value))
         self._last_ns = 0  # bag time of the last message published [ns]
         self._it = bagio.read(path, list(self._pubs), raw=True)
-        self._next: tuple | None = None
+        self._next: tuple | None = next(self._it, None)  # the first message: its time starts
+        self._t0_s = self._next[2] * 1e-9 if self._next is not None else 0.0  # the pacer
         self._pacer = Pacer(float(self.get_parameter("rate").value))
-        self.add_post_set_parameters_callback(self._on_params_set)
+        follow_rate(self, self._pacer, "rate", lambda: self._last_ns * 1e-9, "bag time")
         self._gate = SourceGate(self, self._pubs.get("/fdi/sensor_block"))
         self.count = 0
         self.done = False
@@ -78,15 +76,8 @@ class ReplayerNode(Node):
         self.get_logger().info(f"replaying {path} ({', '.join(self._pubs)}) at rate "
                                f"{self._pacer.rate or 'max'}")
 
-    def _on_params_set(self, params: list[Any]) -> None:
-        for q in params:
-            if q.name == "rate":
-                last_s = self._last_ns * 1e-9
-                self._pacer.set_rate(float(q.value), time.monotonic(), last_s)
-                self.get_logger().info(f"rate {q.value:g} from bag time {last_s:.3f} s")
-
     def _tick(self) -> None:
-        if self.done or not self._gate.check(time.monotonic()):
+        if self.done or not self._gate.check(time.monotonic(), self._pacer, self._t0_s):
             return  # nothing published into the void (see SourceGate)
         for _ in range(200):
             if self._next is None:
@@ -97,8 +88,6 @@ class ReplayerNode(Node):
                     self.get_logger().info(f"replay finished: {self.count} messages")
                     return
             topic, _typ, t_ns, data = self._next
-            if not self._pacer.started:
-                self._pacer.start(time.monotonic(), t_ns * 1e-9)
             if self._pacer.rate > 0:
                 if t_ns * 1e-9 > self._pacer.target(time.monotonic()):
                     return
@@ -106,10 +95,7 @@ class ReplayerNode(Node):
                 for p in self._pubs.values():  # max rate: stay within what readers acknowledge
                     p.wait_for_all_acked()
             self._pubs[topic].publish(bytes(data))
-            if self._clock_pub is not None:
-                c = self._Clock()
-                c.clock.sec, c.clock.nanosec = divmod(t_ns, 1_000_000_000)
-                self._clock_pub.publish(c)
+            self._clock_out.publish(divmod(t_ns, 1_000_000_000))
             self.count += 1
             self._last_ns = t_ns
             self._next = None

@@ -23,7 +23,8 @@ from std_msgs.msg import Header
 from fdi_ros import bag, msgs
 from fdi_ros.core.bankdriver import ChangeState, GetState, Note
 from fdi_ros.core.supervision import GATE_TOPICS, PARAMS, Publish, SupervisorCore
-from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, READY_TOPIC, declare_table, run_node
+from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, declare_table, run_node
+from fdi_ros.nodes.startup import READY_TOPIC
 
 
 class SupervisorNode(Node):

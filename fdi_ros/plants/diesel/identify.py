@@ -41,11 +41,9 @@ def _blocks_from_csv(path: Path, mapping):
 
 def features_from_blocks(blocks) -> list:
     """Crank-synchronous features of consecutive blocks (segments may straddle blocks)."""
-    from fdi_ros.core.crank import CrankSegmenter
-    from fdi_ros.plants.diesel.plant import DieselParams
+    from fdi_ros.plants.diesel.plant import crank_segmenter
 
-    p = DieselParams()  # the engine's displacement and gas constant, one source
-    seg = CrankSegmenter(V_D=p.V_D, R=p.R)
+    seg = crank_segmenter()
     out = []
     for b in blocks:
         out.extend(seg.push_table(b).to_features())
@@ -147,6 +145,7 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
     """Identify, save, calibrate the fault-free thresholds; returns (result, symptom config or
     None, report dict)."""
     from fdi_ros.plants.diesel.reference import (
+        ACTUATORS,
         INPUTS,
         OUTPUTS,
         IdentificationConfig,
@@ -157,8 +156,9 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
 
     cfg = config or IdentificationConfig(seed=seed)
     feats = load_features(data_source, seed=seed, mapping=mapping)
-    with_p2 = bool(feats) and "p2" in feats[0].names
-    data = feature_table(feats, names=INPUTS + OUTPUTS + (("p2",) if with_p2 else ()))
+    have = feats[0].names if feats else ()
+    data = feature_table(feats, names=INPUTS + OUTPUTS + tuple(
+        k for k in ("p2",) + ACTUATORS if k in have))
     res = identify_reference_models(data, config=cfg, progress=progress)
     out = Path(out)
     res.models.save(out)
@@ -175,7 +175,10 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
 
     from fdi_ros.plants.diesel.reference import table_grid_errors
 
-    X = np.column_stack([data[k] for k in INPUTS])
+    X = np.column_stack([data[k] for k in res.models.inputs])
+    report["inputs"] = list(res.models.inputs)
+    if res.models.validity is not None:
+        report["validity"] = {r.name: r.describe() for r in res.models.validity.ranges}
     report["table_vs_model_rmse"] = table_grid_errors(res.models, X[:: max(1, len(X) // 4000)])
     scfg = None
     if fault_free and str(fault_free).lower() != "none":
@@ -215,8 +218,8 @@ def identification_figures(res, data, outdir) -> list[Path]:
         m = mset.models[k]
         ax.plot(X[:, 0], X[:, 1], ".", ms=1, color="0.7", label="data points")
         lo, hi = m.cell_bounds
-        for a, b in zip(lo, hi):
-            ax.add_patch(Rectangle(a, *(b - a), fill=False, lw=1.2, color="C0"))
+        for a, b in zip(lo, hi):   # (n, rho2) projection of the cells
+            ax.add_patch(Rectangle(a[:2], *(b - a)[:2], fill=False, lw=1.2, color="C0"))
         c = m.centres
         ax.plot(c[:, 0], c[:, 1], "x", color="C3", ms=8, mew=2, label="local model centres")
         ax.set_xlabel(f"engine speed n [{UNITS['n']}]")
@@ -230,7 +233,7 @@ def identification_figures(res, data, outdir) -> list[Path]:
     # Figs. 8-10: maps (look-up table over the identified region) against the data points.
     for k in mset.outputs:
         tab = mset.tables[k if k in mset.tables else f"{k}_cos"]
-        bn, br = tab.breakpoints
+        bn, br = tab.breakpoints[:2]
         nn, rr = np.meshgrid(np.linspace(bn[0], bn[-1], 60), np.linspace(br[0], br[-1], 50))
         P = np.column_stack([nn.ravel(), rr.ravel()])
         ref, ok = mset.predict(P[:, 0], P[:, 1])
@@ -252,7 +255,8 @@ def identification_figures(res, data, outdir) -> list[Path]:
         ax.set_zlabel(f"{k} [{UNITS[k]}]")
         ax.set_title(f"reference model {k} (ECU table) vs data")
         ax2 = fig.add_subplot(1, 2, 2)
-        yp = mset.predict(X[te, 0], X[te, 1], use_tables=False)[0][k]
+        yp = mset.predict(X[te, 0], X[te, 1], use_tables=False,
+                          extra={a: data[a][te] for a in mset.extra_inputs})[0][k]
         if k in mset.phase_centre:
             yp = wrap_phase(yp, mset.phase_centre[k])
         ax2.plot(y[te], yp, ".", ms=2)

@@ -68,9 +68,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, fields
+from typing import Any
 
 import numpy as np
 
+from fdi_ros.core.crank import CrankSegmenter
 from fdi_ros.core.types import FaultEvent, SampleBlock
 
 FAULT_IDS = ("crankcase_vent_open", "leak_ic_engine", "restriction_ic_engine",
@@ -216,6 +218,19 @@ class DieselParams:
             raise ValueError("n_harmonics must be within 1..8")
         if self.A_t_closed >= self.A_t_open:
             raise ValueError("A_t_closed must be smaller than A_t_open")
+
+    @property
+    def segment_deg(self) -> float:
+        """One firing of the four-stroke engine [deg CA]: the crank-synchronous segment."""
+        return 720.0 / self.n_cyl
+
+
+def crank_segmenter(p: DieselParams | None = None, **options: Any) -> CrankSegmenter:
+    """The crank-synchronous segmenter of this engine: segment length, displacement and gas
+    constant from its parameters (their one source); ``options`` (n_harmonics, max_gap_deg,
+    or one of the three) go to :class:`~fdi_ros.core.crank.CrankSegmenter`."""
+    p = DieselParams() if p is None else p
+    return CrankSegmenter(**{"segment_deg": p.segment_deg, "V_D": p.V_D, "R": p.R, **options})
 
 
 # ----------------------------------------------------------------------------- static maps
@@ -773,20 +788,23 @@ def _line(beta_l: np.ndarray, z0) -> np.ndarray:
     return m
 
 
-def _series(z: np.ndarray) -> np.ndarray:
-    m = np.zeros(z.shape + (2, 2), dtype=complex)
+def _unit_with(value: np.ndarray, row: int, col: int) -> np.ndarray:
+    """Transfer matrices (..., 2, 2): the identity with ``value`` at (row, col)."""
+    m = np.zeros(value.shape + (2, 2), dtype=complex)
     m[..., 0, 0] = 1.0
-    m[..., 0, 1] = z
+    m[..., row, col] = value
     m[..., 1, 1] = 1.0
     return m
+
+
+def _series(z: np.ndarray) -> np.ndarray:
+    """A series impedance ``z``: [[1, z], [0, 1]]."""
+    return _unit_with(z, 0, 1)
 
 
 def _shunt(y: np.ndarray) -> np.ndarray:
-    m = np.zeros(y.shape + (2, 2), dtype=complex)
-    m[..., 0, 0] = 1.0
-    m[..., 1, 0] = y
-    m[..., 1, 1] = 1.0
-    return m
+    """A shunt admittance ``y``: [[1, 0], [y, 1]]."""
+    return _unit_with(y, 1, 0)
 
 
 def pulsation_harmonics(rec: dict[str, np.ndarray], p: DieselParams,

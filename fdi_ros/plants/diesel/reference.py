@@ -14,7 +14,12 @@ output         meaning                                         unit
 =============  ==============================================  ==========
 
 They are identified with LOLIMOT from fault-free identification-cycle features and then sampled
-into ECU look-up tables (:mod:`fdi_ros.core.lut`) on a user grid. Phases are periodic (one
+into ECU look-up tables (:mod:`fdi_ros.core.lut`) on a user grid. When the identification data
+span the commanded actuators (EGR valve ``egr_cmd``, swirl flaps ``swirl_cmd``), these are model
+inputs as well (N-D maps and tables); whatever the data held fixed bounds the models' validity
+region instead (:class:`~fdi_ros.core.validity.ValidityRegion`, stored in the manifest and
+checked per segment: a model identified with the EGR valve closed is "not valid here" with it
+open). Phases are periodic (one
 period is 180 deg CA); they are fitted on a branch of width 180 deg CA centred on the data's
 circular mean, and residuals are wrapped to +-90 deg CA.
 """
@@ -32,15 +37,20 @@ import numpy as np
 from fdi_ros.core.lolimot import Lolimot, LolimotResult
 from fdi_ros.core.lut import LookupTable, table_error
 from fdi_ros.core.types import FeatureVector
+from fdi_ros.core.validity import ValidityRegion
 
-__all__ = ["INPUTS", "OUTPUTS", "UNITS", "IdentificationConfig", "IdentificationResult",
-           "ReferenceModelSet", "feature_table", "identify_reference_models", "nrmse",
-           "split_blocks", "wrap_phase"]
+__all__ = ["ACTUATORS", "INPUTS", "OUTPUTS", "UNITS", "IdentificationConfig",
+           "IdentificationResult", "ReferenceModelSet", "actuator_breakpoints", "feature_table",
+           "identify_reference_models", "nrmse", "split_blocks", "wrap_phase"]
 
 INPUTS = ("n", "rho2")
+# Commanded actuators: model inputs when the identification spans them, else validity bounds.
+ACTUATORS = ("egr_cmd", "swirl_cmd")
+# Accepted deviation of an actuator command from the value the identification held [1].
+ACTUATOR_TOL = {"egr_cmd": 0.02, "swirl_cmd": 0.02}
 OUTPUTS = ("eta_v", "maf_amp", "maf_phase", "p2_amp", "p2_phase")
-UNITS = {"n": "rpm", "rho2": "kg/m^3", "eta_v": "1", "maf_amp": "kg/h", "maf_phase": "deg CA",
-         "p2_amp": "Pa", "p2_phase": "deg CA"}
+UNITS = {"n": "rpm", "rho2": "kg/m^3", "egr_cmd": "1", "swirl_cmd": "1", "eta_v": "1",
+         "maf_amp": "kg/h", "maf_phase": "deg CA", "p2_amp": "Pa", "p2_phase": "deg CA"}
 PHASES = ("maf_phase", "p2_phase")
 AMPLITUDE_OF = {"maf_phase": "maf_amp", "p2_phase": "p2_amp"}
 PERIOD_DEG = 180.0
@@ -125,6 +135,10 @@ class IdentificationConfig:
 
     lut_n, lut_rho2 : ECU table breakpoints [rpm], [kg/m^3]; empty -> a 17 x 13 grid over the
         identified range.
+    actuator_inputs : the commanded actuators that the data span become model inputs (those
+        held fixed only bound the validity region); False: (n, rho2) only, as in the paper.
+    lut_actuator : breakpoints per actuator input (a command has few distinct settings: its
+        distinct values when there are at most this many, else this many equidistant ones).
     """
 
     max_models: int = 20
@@ -142,6 +156,8 @@ class IdentificationConfig:
     storage_correction: bool = True
     rate_lag: int = 2
     phase_min_amp_frac: float = 0.1
+    actuator_inputs: bool = True
+    lut_actuator: int = 6
 
     def __post_init__(self) -> None:
         if self.block < 1:
@@ -166,47 +182,82 @@ _LOADED: dict[tuple[str, int], ReferenceModelSet] = {}  # see ReferenceModelSet.
 class ReferenceModelSet:
     """The five LOLIMOT models, their look-up tables and the phase branch centres.
 
-    ``predict`` evaluates the tables (as the ECU does) or the LOLIMOT models themselves.
+    ``inputs`` are the models' inputs (``n, rho2`` and the actuator commands the identification
+    spanned); ``validity`` the per-input region of the identification data (incl. the actuator
+    commands it held fixed). ``predict`` evaluates the tables (as the ECU does) or the LOLIMOT
+    models themselves.
     """
 
     models: dict[str, Lolimot]
     tables: dict[str, LookupTable]
     phase_centre: dict[str, float] = field(default_factory=dict)
     info: dict = field(default_factory=dict)
+    inputs: tuple[str, ...] = INPUTS
+    validity: ValidityRegion | None = None
 
     @property
     def outputs(self) -> tuple[str, ...]:
         return tuple(k for k in OUTPUTS if k in self.models or f"{k}_cos" in self.models)
+
+    @property
+    def extra_inputs(self) -> tuple[str, ...]:
+        """Model inputs besides (n, rho2): the spanned actuator commands."""
+        return self.inputs[2:]
 
     def _one(self, name: str, X: np.ndarray, use_tables: bool):
         if use_tables and name in self.tables:
             return self.tables[name].evaluate(X)
         return self.models[name].predict(X), np.ones(X.shape[0], dtype=bool)
 
-    def in_region(self, n, rho2) -> np.ndarray:
-        """Identified region of the eta_v model's training data (all five share the data)."""
-        X = np.column_stack([np.atleast_1d(n), np.atleast_1d(rho2)]).astype(float)
-        return self.models[self.outputs[0]].in_region(X)
+    def _matrix(self, n, rho2, extra: Mapping[str, object] | None) -> np.ndarray:
+        """Model input rows; an extra input not given takes the low end of its identified
+        range (EGR closed, swirl flaps open: the paper's reference condition)."""
+        cols = [np.atleast_1d(np.asarray(n, dtype=float)),
+                np.atleast_1d(np.asarray(rho2, dtype=float))]
+        size = max(cols[0].size, cols[1].size)
+        for k in self.extra_inputs:
+            if extra is not None and k in extra:
+                v = np.atleast_1d(np.asarray(extra[k], dtype=float))
+            else:
+                v = np.array([self.validity[k].lo if self.validity is not None
+                              and k in self.validity.names else 0.0])
+            cols.append(v)
+        return np.column_stack([np.broadcast_to(c, (size,)) for c in cols]).astype(float)
 
-    def predict(self, n, rho2, *, use_tables: bool = True
+    def in_region(self, n, rho2, extra: Mapping[str, object] | None = None) -> np.ndarray:
+        """Identified region of the eta_v model's training data (all five share the data)."""
+        return self.models[self.outputs[0]].in_region(self._matrix(n, rho2, extra))
+
+    def check(self, data: Mapping[str, object], size: int) -> tuple[np.ndarray, list[str]]:
+        """Per-input validity of ``size`` segments (``data``: arrays by feature name): a flag
+        and a reason per segment ("" where valid). The joint (n, rho2, ...) coverage is
+        :meth:`predict`'s flag."""
+        if self.validity is None:
+            return np.ones(size, dtype=bool), [""] * size
+        return self.validity.contains(data, size), self.validity.reasons(data, size)
+
+    def predict(self, n, rho2, *, use_tables: bool = True,
+                extra: Mapping[str, object] | None = None
                 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """Reference values at the operating points and a validity flag per point.
 
-        One operating point at a time (the per-segment path) is memoised for the last point:
-        the bank's hypothesis models all ask for the reference at the same segment."""
-        if np.size(n) == 1 and np.size(rho2) == 1:
-            key = (float(np.ravel(n)[0]), float(np.ravel(rho2)[0]), bool(use_tables))
+        ``extra``: values of the extra model inputs (actuator commands) by name. One operating
+        point at a time (the per-segment path) is memoised for the last point: the bank's
+        hypothesis models all ask for the reference at the same segment."""
+        X = self._matrix(n, rho2, extra)
+        if X.shape[0] == 1:
+            key = (tuple(X[0].tolist()), bool(use_tables))
             memo = self.__dict__.get("_memo")
             if memo is not None and memo[0] == key:
                 return {k: v.copy() for k, v in memo[1].items()}, memo[2].copy()
-            out, valid = self._predict(n, rho2, use_tables=use_tables)
+            out, valid = self._predict(X, use_tables=use_tables)
             object.__setattr__(self, "_memo", (key, {k: v.copy() for k, v in out.items()},
                                                valid.copy()))
             return out, valid
-        return self._predict(n, rho2, use_tables=use_tables)
+        return self._predict(X, use_tables=use_tables)
 
-    def _predict(self, n, rho2, *, use_tables: bool) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        X = np.column_stack([np.atleast_1d(n), np.atleast_1d(rho2)]).astype(float)
+    def _predict(self, X: np.ndarray, *, use_tables: bool
+                 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         valid = self.models[self.outputs[0]].in_region(X)
         out = {}
         for k in self.outputs:
@@ -232,9 +283,10 @@ class ReferenceModelSet:
             m.save(d / f"{k}.npz")
         for k, t in self.tables.items():
             t.save(d / f"{k}.lut.json")
-        manifest = {"type": "diesel_reference", "inputs": list(INPUTS),
+        manifest = {"type": "diesel_reference", "inputs": list(self.inputs),
                     "outputs": list(self.models), "tables": list(self.tables),
-                    "phase_centre": self.phase_centre, "info": self.info}
+                    "phase_centre": self.phase_centre, "info": self.info,
+                    "validity": self.validity.to_dict() if self.validity else None}
         (d / MANIFEST).write_text(json.dumps(manifest, indent=1))
         return d
 
@@ -263,9 +315,12 @@ class ReferenceModelSet:
             tables = {k: LookupTable.load(d / f"{k}.lut.json") for k in manifest["tables"]}
         except (KeyError, json.JSONDecodeError) as exc:
             raise ValueError(f"{mf}: malformed manifest: {exc}") from exc
+        validity = manifest.get("validity")
         return cls(models=models, tables=tables,
                    phase_centre={k: float(v) for k, v in manifest["phase_centre"].items()},
-                   info=manifest.get("info", {}))
+                   info=manifest.get("info", {}),
+                   inputs=tuple(manifest.get("inputs", INPUTS)),
+                   validity=ValidityRegion.from_dict(validity) if validity else None)
 
 
 @dataclass(frozen=True)
@@ -307,6 +362,13 @@ def storage_regressor(t, n, p2, lag: int = 2) -> np.ndarray:
     return x
 
 
+def actuator_breakpoints(x: np.ndarray, most: int) -> np.ndarray:
+    """Table breakpoints of an actuator command: its distinct settings when there are at most
+    ``most`` (e.g. flaps open / closed), else ``most`` equidistant ones over its range."""
+    u = np.unique(np.round(np.asarray(x, dtype=float), 3))
+    return u if 2 <= u.size <= most else np.linspace(u[0], u[-1], max(most, 2))
+
+
 def _target(k: str, y: np.ndarray, centre: float | None) -> np.ndarray:
     return wrap_phase(y, centre) if k in PHASES else y
 
@@ -323,13 +385,20 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
     missing = [k for k in INPUTS + OUTPUTS if k not in data]
     if missing:
         raise ValueError(f"identification data lacks {missing}")
-    X = np.column_stack([np.asarray(data[k], dtype=float) for k in INPUTS])
-    finite = np.all(np.isfinite(X), axis=1)
-    for k in OUTPUTS:
+    finite = np.ones(np.asarray(data["n"]).shape[0], dtype=bool)
+    for k in INPUTS + OUTPUTS + tuple(a for a in ACTUATORS if a in data):
         finite &= np.isfinite(np.asarray(data[k], dtype=float))
-    X = X[finite]
+    # Actuator commands the data span are model inputs; held ones bound the validity only.
+    spanned = tuple(a for a in ACTUATORS if cfg.actuator_inputs and a in data and
+                    np.ptp(np.asarray(data[a], dtype=float)[finite]) > ACTUATOR_TOL[a])
+    inputs = INPUTS + spanned
+    X = np.column_stack([np.asarray(data[k], dtype=float) for k in inputs])[finite]
     if X.shape[0] < 10 * cfg.min_samples_per_model:
         raise ValueError(f"only {X.shape[0]} usable segments: too few to identify the models")
+    validity = ValidityRegion.learn({k: np.asarray(data[k], dtype=float)[finite]
+                                     for k in INPUTS + ACTUATORS if k in data},
+                                    INPUTS + ACTUATORS, tolerance=ACTUATOR_TOL,
+                                    rel_tolerance=0.0, units=UNITS)
     tr, va, te = split_blocks(X.shape[0], block=cfg.block, seed=cfg.seed)
     n_bp = np.asarray(cfg.lut_n, dtype=float)
     r_bp = np.asarray(cfg.lut_rho2, dtype=float)
@@ -337,6 +406,8 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
         n_bp = np.linspace(X[:, 0].min(), X[:, 0].max(), 17)
     if r_bp.size == 0:
         r_bp = np.linspace(X[:, 1].min(), X[:, 1].max(), 13)
+    bps = (n_bp, r_bp) + tuple(actuator_breakpoints(X[:, 2 + j], cfg.lut_actuator)
+                               for j in range(len(spanned)))
     models, tables, results, centres, min_amp = {}, {}, {}, {}, {}
     nr_tr, nr_te, nr_lut, lut_err = {}, {}, {}, {}
     t0 = time.perf_counter()
@@ -399,10 +470,10 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
                 name = f"{k}_{comp}"
                 m = cfg.lolimot()
                 res = m.fit(X[ktr], vals[ktr], X_val=X[kva], y_val=vals[kva],
-                            progress=progress, input_names=INPUTS, output_name=name)
+                            progress=progress, input_names=inputs, output_name=name)
                 models[name], results[name] = m, res
-                tables[name] = LookupTable.from_model(m.predict, (n_bp, r_bp),
-                                                      region=m.in_region, input_names=INPUTS,
+                tables[name] = LookupTable.from_model(m.predict, bps,
+                                                      region=m.in_region, input_names=inputs,
                                                       output_name=name)
                 pred[comp] = (m.predict, tables[name])
             yw = wrap_phase(y, centres[k])
@@ -425,10 +496,10 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
             continue
         m = cfg.lolimot()
         res = m.fit(X[ktr], y[ktr], X_val=X[kva], y_val=y[kva], progress=progress,
-                    input_names=INPUTS, output_name=k)
+                    input_names=inputs, output_name=k)
         models[k], results[k] = m, res
-        tables[k] = LookupTable.from_model(m.predict, (n_bp, r_bp), region=m.in_region,
-                                           input_names=INPUTS, output_name=k)
+        tables[k] = LookupTable.from_model(m.predict, bps, region=m.in_region,
+                                           input_names=inputs, output_name=k)
         nr_tr[k] = nrmse(y[ktr], m.predict(X[ktr]))
         nr_te[k] = nrmse(y[kte], m.predict(X[kte]))
         nr_lut[k] = nrmse(y[kte], tables[k](X[kte]))
@@ -438,7 +509,8 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
             "n_models": {k: r.n_models for k, r in results.items()},
             "n_train": int(tr.size), "config": {k: (list(v) if isinstance(v, tuple) else v)
                                                 for k, v in asdict(cfg).items()}}
-    mset = ReferenceModelSet(models=models, tables=tables, phase_centre=centres, info=info)
+    mset = ReferenceModelSet(models=models, tables=tables, phase_centre=centres, info=info,
+                             inputs=inputs, validity=validity)
     return IdentificationResult(models=mset, results=results, nrmse_train=nr_tr,
                                 nrmse_test=nr_te, nrmse_test_lut=nr_lut, lut_error=lut_err,
                                 n_train=int(tr.size), n_val=int(va.size), n_test=int(te.size),
@@ -450,13 +522,16 @@ def table_grid_errors(models: ReferenceModelSet, X: np.ndarray,
                       grids: tuple[tuple[int, int], ...] = ((5, 4), (9, 7), (17, 13), (33, 25))
                       ) -> dict[str, dict[str, float]]:
     """Table-versus-model RMSE of every LOLIMOT map for several ECU grid sizes (equidistant
-    breakpoints over the identified range), evaluated at the points X (valid ones only)."""
+    breakpoints over the identified range), evaluated at the points X (rows of the models'
+    inputs; valid ones only)."""
     out = {}
     for nn, nr in grids:
         row = {}
         for name, m in models.models.items():
             lo, hi = m.input_range
-            bp = (np.linspace(lo[0], hi[0], nn), np.linspace(lo[1], hi[1], nr))
+            # the actuator inputs keep their breakpoints (the settings of the command)
+            bp = (np.linspace(lo[0], hi[0], nn), np.linspace(lo[1], hi[1], nr),
+                  *models.tables[name].breakpoints[2:])
             lut = LookupTable.from_model(m.predict, bp, region=m.in_region)
             row[name] = table_error(m.predict, lut, X)["rmse"]
         out[f"{nn}x{nr}"] = row

@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from fdi_ros.core.crank import SegmentTable
 from fdi_ros.core.types import FaultEvent, SampleBlock
 from fdi_ros.plants.diesel.plant import (
     CHANNELS,
@@ -52,6 +53,7 @@ from fdi_ros.plants.diesel.plant import (
     UNITS,
     DieselIntakePlant,
     DieselParams,
+    crank_segmenter,
     fuel_for_torque,
 )
 
@@ -340,11 +342,9 @@ def simulate(scenario, *, seed: int | None = None, progress: bool = False,
     ``seed`` overrides the scenario's noise seed. With ``keep_blocks=False`` only truth and
     features are kept (10 min at 2000 rpm are ~7 M samples, ~0.5 GB as blocks).
     """
-    from fdi_ros.core.crank import CrankSegmenter, SegmentTable
-
     sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
     sd = sc.seed if seed is None else int(seed)
-    seg = CrankSegmenter(V_D=sc.params.V_D, R=sc.params.R) if features else None
+    seg = crank_segmenter(sc.params) if features else None
     tables: list[SegmentTable] = []
     blocks: list[SampleBlock] = []
     bar = None
@@ -370,7 +370,6 @@ def simulate(scenario, *, seed: int | None = None, progress: bool = False,
 
 
 def _concat_tables(tables):
-    from fdi_ros.core.crank import SegmentTable
     tabs = [t for t in tables if t.index.size]
     if not tabs:
         return tables[0] if tables else None

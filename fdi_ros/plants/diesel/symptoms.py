@@ -71,12 +71,16 @@ def parity_residuals(models: ReferenceModelSet, data: Mapping[str, np.ndarray], 
                      use_tables: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Residuals (N, 5) in :data:`RESIDUALS` order and a validity flag (N,).
 
-    ``data`` holds arrays ``n, rho2, eta_v, maf_amp, maf_phase, p2_amp, p2_phase``. Invalid
-    rows (outside the identified region, or non-finite) keep their numbers but are flagged.
+    ``data`` holds arrays ``n, rho2, eta_v, maf_amp, maf_phase, p2_amp, p2_phase`` and the
+    actuator commands the models' validity region bounds (``egr_cmd``, ``swirl_cmd``). Invalid
+    rows (outside the identified region of any input, or non-finite) keep their numbers but
+    are flagged; :func:`region_status` says why.
     """
     n = np.atleast_1d(np.asarray(data["n"], dtype=float))
     ref, valid = models.predict(n, np.atleast_1d(np.asarray(data["rho2"], dtype=float)),
-                                use_tables=use_tables)
+                                use_tables=use_tables,
+                                extra={k: data[k] for k in models.extra_inputs if k in data})
+    valid = valid & models.check(data, n.size)[0]
     R = np.empty((n.size, len(RESIDUALS)))
     min_amp = models.info.get("phase_min_amp", {})
     for j, r in enumerate(RESIDUALS):
@@ -90,6 +94,33 @@ def parity_residuals(models: ReferenceModelSet, data: Mapping[str, np.ndarray], 
         R[:, j] = d
     valid = valid & np.all(np.isfinite(R), axis=1)
     return R, valid
+
+
+FEATURES = ("n", "rho2", "eta_v", "maf_amp", "maf_phase", "p2_amp", "p2_phase")
+
+
+def model_features(models: ReferenceModelSet) -> tuple[str, ...]:
+    """Feature names the residuals of ``models`` read: the characteristic values, the model
+    inputs and every input of the validity region."""
+    extra = tuple(models.validity.names) if models.validity is not None else ()
+    return FEATURES + tuple(k for k in models.inputs + extra if k not in FEATURES)
+
+
+def region_status(models: ReferenceModelSet, data: Mapping[str, np.ndarray],
+                  joint_ok: np.ndarray) -> list[str]:
+    """Why each segment is outside the models' identified region ("" inside): the inputs
+    outside their identified ranges (e.g. the EGR valve open for models identified with it
+    closed), else the operating point outside the joint coverage of the identification."""
+    n = np.atleast_1d(np.asarray(data["n"], dtype=float))
+    _, why = models.check(data, n.size)
+    rho2 = np.atleast_1d(np.asarray(data["rho2"], dtype=float))
+    out = []
+    for i, w in enumerate(why):
+        if not w and not joint_ok[i]:
+            w = (f"not valid here: operating point n = {n[i]:.0f} rpm, rho2 = "
+                 f"{rho2[i]:.3f} kg/m^3 outside the identified region")
+        out.append(w)
+    return out
 
 
 def calibrate_thresholds(R: np.ndarray, valid: np.ndarray | None = None,
@@ -119,21 +150,22 @@ def residual_vector(models: ReferenceModelSet, fv: FeatureVector, *, model_id: s
     ``norm`` is the RMS of the residuals centred and divided by their fault-free scale (NaN
     when invalid or without a scale).
     """
-    names = ("n", "rho2", "eta_v", "maf_amp", "maf_phase", "p2_amp", "p2_phase")
     status = ""
     try:
-        data = {k: np.array([fv.get(k)]) for k in names}
+        data = {k: np.array([fv.get(k)]) for k in FEATURES}
     except KeyError as exc:
         data, status = None, f"feature missing: {exc}"
     valid = bool(fv.valid) and data is not None
     if data is not None:
+        data.update({k: np.array([fv.get(k)]) for k in model_features(models)[len(FEATURES):]
+                     if k in fv.names})
         R, ok = parity_residuals(models, data)
         r = R[0]
         if not fv.valid:
             status = fv.status or "features not valid"
         elif not ok[0]:
             valid = False
-            status = "not valid here: operating point outside the identified region"
+            status = region_status(models, data, ok)[0] or "residuals not finite"
     else:
         r = np.full(len(RESIDUALS), np.nan)
     norm = float("nan")
@@ -528,26 +560,27 @@ def stream_residuals(models: ReferenceModelSet, features: Sequence[FeatureVector
                      model_id: str = "nominal") -> list[ResidualVector]:
     """Nominal residual vectors for a stream of feature vectors, vectorised (offline use);
     identical to :class:`ReferenceResidualModel` segment by segment."""
-    names = ("n", "rho2", "eta_v", "maf_amp", "maf_phase", "p2_amp", "p2_phase")
     feats = list(features)
     if not feats:
         return []
     cols = {}
-    for k in names:
-        cols[k] = np.array([fv.values[fv.names.index(k)] if k in fv.names else np.nan
-                            for fv in feats], dtype=float)
+    for k in model_features(models):
+        if k in FEATURES or any(k in fv.names for fv in feats):
+            cols[k] = np.array([fv.values[fv.names.index(k)] if k in fv.names else np.nan
+                                for fv in feats], dtype=float)
     R, ok = parity_residuals(models, cols)
+    why = region_status(models, cols, ok) if not ok.all() else [""] * len(feats)
     qs = QuasiStationarity(config)
     out = []
     for i, fv in enumerate(feats):
-        has_all = all(k in fv.names for k in names)
+        has_all = all(k in fv.names for k in FEATURES)
         valid = bool(fv.valid) and has_all and bool(ok[i])
         if not fv.valid:
             status = fv.status or "features not valid"
         elif not has_all:
             status = "feature missing"
         elif not ok[i]:
-            status = "not valid here: operating point outside the identified region"
+            status = why[i] or "residuals not finite"
         else:
             status = ""
         out.append(_finish(fv, *qs.apply(fv, R[i], valid, status), config, model_id))

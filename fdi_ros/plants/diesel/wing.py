@@ -20,7 +20,7 @@ from fdi_ros.core.graphconfig import GraphConfig
 from fdi_ros.core.plant_api import FaultQueue
 from fdi_ros.core.types import FaultEvent, FeatureVector, SampleBlock
 from fdi_ros.plants import ROOT, Wing
-from fdi_ros.plants.diesel.plant import FAULT_IDS, FAULT_UNITS, DieselParams
+from fdi_ros.plants.diesel.plant import FAULT_IDS, FAULT_UNITS, crank_segmenter
 
 DEFAULT_SCENARIO = ROOT / "config" / "scenarios" / "diesel_paper_op.yaml"
 # Size at which each fault-hypothesis model is identified (mid-range of the scenarios; the
@@ -83,12 +83,7 @@ class DieselPreprocessor:
     """
 
     def __init__(self, **kwargs: Any) -> None:
-        from fdi_ros.core.crank import CrankSegmenter
-
-        p = DieselParams()
-        kwargs.setdefault("V_D", p.V_D)
-        kwargs.setdefault("R", p.R)
-        self.seg = CrankSegmenter(**kwargs)
+        self.seg = crank_segmenter(None, **kwargs)
 
     def push(self, block: SampleBlock) -> list[FeatureVector]:
         return self.seg.push(block)
@@ -134,6 +129,17 @@ def _hypothesis_current(spec: dict) -> bool:
     return bool(info.get("reference") == reference_fingerprint(spec["path"]))
 
 
+def _reference_current(d: Path) -> bool:
+    """The reference model set exists and carries its validity region (sets identified before
+    the region was stored with them are rebuilt)."""
+    if not all((d / f).exists() for f in REFERENCE_FILES):
+        return False
+    try:
+        return json.loads((d / REFERENCE_FILES[0]).read_text()).get("validity") is not None
+    except ValueError:
+        return False
+
+
 def _missing(cfg: GraphConfig) -> list[tuple[str, dict]]:
     out = []
     for e in cfg.bank:
@@ -141,8 +147,7 @@ def _missing(cfg: GraphConfig) -> list[tuple[str, dict]]:
         if not isinstance(spec, dict):
             continue
         if spec.get("type") == "diesel_reference":
-            d = Path(spec["path"])
-            if not all((d / f).exists() for f in REFERENCE_FILES):
+            if not _reference_current(Path(spec["path"])):
                 out.append((e.id, spec))
         elif spec.get("type") == "diesel_fault_hypothesis" and not _hypothesis_current(spec):
             out.append((e.id, spec))

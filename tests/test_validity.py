@@ -1,0 +1,110 @@
+"""Validity regions: learned from every input of the identification, checked per segment.
+
+Core oracles on :class:`ValidityRegion`, then the diesel bank as a user meets it: fault-free
+operation with the EGR valve open or the swirl flaps closed, at operating points drawn at random
+over the map, gives no symptom and no isolation (a valid diagnosis where the bank covers it,
+"not valid here" with the reason where it does not).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fdi_ros.core.validity import InputRange, ValidityRegion
+
+
+def test_learned_ranges_are_the_data_ranges_widened_by_the_tolerances():
+    rng = np.random.default_rng(1)
+    n = rng.uniform(900.0, 3900.0, 500)
+    data = {"n": n, "valve": np.zeros(500), "flap": rng.choice([0.0, 1.0], 500)}
+    reg = ValidityRegion.learn(data, ("n", "valve", "flap", "absent"),
+                               tolerance={"valve": 0.02}, rel_tolerance=0.01)
+    assert reg.names == ("n", "valve", "flap")          # absent inputs bound nothing
+    assert reg["n"].lo == n.min() and reg["n"].hi == n.max()
+    assert reg["n"].tol == pytest.approx(0.01 * np.ptp(n))
+    assert reg["valve"].held and reg["valve"].tol == pytest.approx(0.02)
+    assert reg.check({"n": 2000.0, "valve": 0.01, "flap": 1.0}) == ""
+    why = reg.check({"n": 2000.0, "valve": 0.5, "flap": 0.0})
+    assert why.startswith("not valid here") and "valve = 0.5" in why and "held at 0" in why
+    assert "n" not in why.split(":")[1].split("=")[0]
+    assert "not in the data" in reg.check({"n": 2000.0, "flap": 0.0})
+    assert "not finite" in reg.check({"n": float("nan"), "valve": 0.0, "flap": 0.0})
+    # vectorised == per row, on points drawn at random around the region
+    q = {"n": rng.uniform(500, 4500, 300), "valve": rng.uniform(-0.1, 0.3, 300),
+         "flap": rng.uniform(-0.1, 1.1, 300)}
+    ok = reg.contains(q, 300)
+    reasons = reg.reasons(q, 300)
+    for i in range(300):
+        one = reg.check({k: float(v[i]) for k, v in q.items()})
+        assert (one == "") == bool(ok[i]) and one == reasons[i]
+    assert not reg.contains({"n": q["n"]}, 300).any()
+    assert ValidityRegion.from_dict(reg.to_dict()) == reg
+
+
+def test_malformed_regions_are_refused():
+    with pytest.raises(ValueError):
+        InputRange("x", 2.0, 1.0)
+    with pytest.raises(ValueError):
+        InputRange("x", 0.0, 1.0, tol=-1.0)
+    with pytest.raises(ValueError):
+        ValidityRegion((InputRange("x", 0, 1), InputRange("x", 0, 2)))
+    with pytest.raises(ValueError):
+        ValidityRegion.from_dict({"ranges": [{"name": "x"}]})
+    with pytest.raises(ValueError):
+        ValidityRegion.learn({"x": [np.nan]}, ("x",))
+
+
+def _fault_free(n_rpm: float, torque: float, egr: float, swirl: float, seed: int,
+                seconds: float = 2.5) -> list:
+    from fdi_ros.plants.diesel.plant import DieselIntakePlant, crank_segmenter, fuel_for_torque
+
+    plant = DieselIntakePlant(seed=seed)
+    plant.set_inputs(n_rpm=n_rpm, fuel_mg=float(fuel_for_torque(n_rpm, torque, plant.p)),
+                     egr_cmd=egr, swirl_cmd=swirl)
+    seg = crank_segmenter(plant.p)
+    feats: list = []
+    while True:
+        block = plant.advance(720)
+        feats.extend(seg.push_table(block).to_features())
+        if block.t[-1] >= seconds:
+            return feats
+
+
+def test_reference_models_carry_the_region_of_every_input(diesel_reference_dir):
+    from fdi_ros.plants.diesel.reference import ReferenceModelSet
+
+    mset = ReferenceModelSet.load(diesel_reference_dir)
+    assert mset.validity is not None
+    assert {"n", "rho2", "egr_cmd", "swirl_cmd"} <= set(mset.validity.names)
+
+
+def test_fault_free_with_egr_open_or_swirl_closed_gives_no_symptom_no_isolation(diesel_bank):
+    """Random points of the speed-load map, EGR valve open or swirl flaps closed (commanded,
+    no fault): never a symptom, never a detection; segments the bank does not cover say why."""
+    from fdi_ros.core.diagnoser import diagnose_offline
+    from fdi_ros.core.graphconfig import load_graph_config
+    from fdi_ros.plants.diesel.reference import ReferenceModelSet
+
+    cfg = load_graph_config(diesel_bank)
+    mset = ReferenceModelSet.load(cfg.resolve("build/models/diesel"))
+    rng = np.random.default_rng(16)
+    cases = [(float(rng.uniform(1100, 3600)), float(rng.uniform(20, 150)),
+              float(rng.uniform(0.2, 1.0)), 0.0) for _ in range(2)]
+    cases += [(float(rng.uniform(1100, 3600)), float(rng.uniform(20, 150)), 0.0, 1.0)]
+    cases += [(2000.0, 130.0, 0.5, 0.0), (2000.0, 130.0, 0.0, 1.0)]   # the reported cases
+    for k, (n, tq, egr, swirl) in enumerate(cases):
+        feats = _fault_free(n, tq, egr, swirl, seed=300 + k)
+        steps = diagnose_offline(cfg, feats)
+        where = f"n={n:.0f} rpm, torque={tq:.0f} Nm, egr_cmd={egr:.2f}, swirl_cmd={swirl:.0f}"
+        states = {s.diagnosis.state for _, _, s in steps}
+        assert states <= {"no_fault", "not_valid"}, (where, states)
+        for _, _, s in steps:
+            if s.symptoms.valid:
+                assert not any(s.symptoms.levels), (where, s.symptoms)
+            elif feats[0].t_end + 1.5 < s.diagnosis.t:   # past the start-up settling
+                assert s.symptoms.status.startswith("not valid here"), (where, s.symptoms)
+        held = {r.name for r in mset.validity.ranges if r.held}
+        if ("egr_cmd" in held and egr > 0.05) or ("swirl_cmd" in held and swirl > 0.05):
+            last = steps[-1][2].symptoms
+            assert not last.valid and ("egr_cmd" in last.status or "swirl_cmd" in last.status)

@@ -137,3 +137,44 @@ def test_no_isolation_while_the_believed_model_is_away(tmp_path):
     d = diag.update(40, 4.0, {"nominal": rv("nominal", 4.0, 0.0), "a": rv("a", 4.0, 1.0),
                               "b": rv("b", 4.0, 1.0)}).diagnosis
     assert d.state == "no_fault"
+
+
+def test_partial_bank_isolates_nothing_while_a_candidate_model_is_away(tmp_path):
+    """Two faults fit the symptom; a's model explains the residuals but b's model is away
+    (dead, silent): nothing is isolated ('detected, not isolable', b named as away), however
+    long it lasts; with b's model back (and worse than a), a is isolated."""
+    import yaml
+
+    from fdi_ros.core.graphconfig import load_graph_config
+
+    table = tmp_path / "fst.yaml"
+    table.write_text(yaml.safe_dump({"symptoms": ["s_1"], "tables": {"t": {"a": "-", "b": "-"}}}))
+    cfg_file = tmp_path / "config" / "g.yaml"
+    cfg_file.parent.mkdir()
+    cfg_file.write_text(CONFIG.replace("  t0_s: 0.5\n", "  t0_s: 0.2\n"))
+    diag = Diagnoser(load_graph_config(cfg_file))
+    diag.table = FaultSymptomTable(("s_1",), {"a": (-1,), "b": (-1,)})
+    diag.reference_id = "nominal"
+
+    class Sym:  # s_1 = "-" from t = 1 s on
+        def update(self, rv):
+            from types import SimpleNamespace
+            lv = (-1,) if rv.t >= 1.0 else (0,)
+            return SimpleNamespace(valid=True, levels=lv, in_order=lambda columns: lv)
+
+    diag.symptom_gen = Sym()
+
+    def rv(mid, t, norm):
+        return ResidualVector(mid, 0, t, True, "", ("r",), ("1",), np.array([norm]), norm)
+
+    for k in range(40):
+        t = 0.1 * k
+        d = diag.update(k, t, {"nominal": rv("nominal", t, 3.0), "a": rv("a", t, 0.2)}).diagnosis
+        assert d.isolated_faults == (), (t, d)
+    assert d.state == "detected" and set(d.candidate_faults) == {"a", "b"}
+    assert d.extra["not_isolable"] and d.extra["away"] == ("b",)
+    for k in range(40, 60):
+        t = 0.1 * k
+        d = diag.update(k, t, {"nominal": rv("nominal", t, 3.0), "a": rv("a", t, 0.2),
+                               "b": rv("b", t, 0.9)}).diagnosis
+    assert d.state == "isolated" and d.isolated_faults == ("a",), d

@@ -299,3 +299,25 @@ def test_start_gate_names_what_is_missing_until_every_reader_is_there(tmp_path):
     less = {"/fdi/features": 1, "/fdi/residuals": len(nodes) - 1}
     pubs = {"/fdi/features": {"fdi_preprocessor"}, "/fdi/residuals": set(nodes[:-1])}
     assert core.waiting_for(pubs, full_subs, less, readers) == []
+
+
+def test_models_on_line_before_the_data_are_not_stale_at_its_first_segment(tmp_path):
+    """The start-up handshake activates the bank seconds before the first block: a model is
+    judged from the first features on, so the first segments are diagnosed on the whole bank
+    (as offline), not declared stale and skipped."""
+    core = _core(tmp_path)
+    ready = {m: False for m in core.driver.nodes}
+    core.tick(0.0, ready, None)  # the bank on line at wall 0
+    notes = []
+    for k in range(10):  # the data starts at wall 5
+        wall = 5.0 + 0.015 * k
+        notes += [a for a in core.tick(wall, ready, None) if hasattr(a, "text")]
+        _feed(core, k, 0.0, wall)
+    assert not [n.text for n in notes if "stale" in n.text], notes
+    assert core.last.state == "no_fault" and core.aligner.skipped == 0
+    # a model silent for model_wall_s while the features go on is stale (and away)
+    for k in range(10, 100):
+        wall = 5.0 + 0.015 * k
+        core.tick(wall, ready, None)
+        _feed(core, k, 0.0, wall, skip=("b",))
+    assert "residuals b" in core._stale and "b" not in core._expected()

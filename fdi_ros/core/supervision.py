@@ -146,6 +146,7 @@ class Source:
     t: float = -math.inf  # plant time of the last message
     wall: float = math.nan  # wall time of its arrival (NaN: never seen)
     since_wall: float = math.nan  # wall time it became expected
+    first_wall: float = math.nan  # wall time of its first message
 
 
 @dataclass
@@ -161,6 +162,8 @@ class Staleness:
         s = self.sources.setdefault(name, Source())
         s.t = max(s.t, float(t))
         s.wall = wall
+        if math.isnan(s.first_wall):
+            s.first_wall = wall
         self.newest_t = max(self.newest_t, float(t))
 
     def expect(self, name: str, wall: float) -> None:
@@ -412,13 +415,20 @@ class SupervisorCore:
         from dataclasses import replace
 
         out: list = []
-        for st in self.aligner.ready(self._expected()):
+        expected = self._expected()
+        for st in self.aligner.ready(expected):
             sym = self._symptoms.pop(st.index, None)
-            # A stale model (frozen, or gone without leaving the graph yet) is reported and
-            # left out, as a dead one is; no-elimination keeps it from causing a wrong isolation
+            # A silent model (frozen, overloaded, or gone without leaving the graph yet) is
+            # reported STALE and away, as a dead one is: steps do not wait for it (the others
+            # would pile up) and its residuals are not valid until it is back (a backlog it
+            # flushes on waking is not mixed into fresh steps). Without the reference model
+            # the step is "not valid" (no symptom); without a candidate's model the diagnoser
+            # isolates nothing ("detected, not isolable", the candidates named).
             skip = not st.complete
-            step = self.diag.update(st.index, st.t, {} if skip else st.residuals,
-                                    symptoms=None if skip else sym)
+            used = {m: r for m, r in st.residuals.items() if m in expected}
+            ref_away = self.diag.reference_id not in used
+            step = self.diag.update(st.index, st.t, {} if skip else used,
+                                    symptoms=None if skip or ref_away else sym)
             d = step.diagnosis
             if skip:
                 d = replace(d, state="not_valid" if not d.isolated_faults else d.state,
@@ -551,14 +561,16 @@ class SupervisorCore:
 
     def _models_stale(self, now: float) -> dict[str, str]:
         """A model is stale when features kept coming for ``model_wall_s`` after its last
-        residuals (frozen or overloaded); without features no model is judged."""
+        residuals (frozen or overloaded); without features no model is judged. A model on
+        line before the data started is counted from the first features (the start-up
+        handshake activates the bank before the source sends anything)."""
         fw = self.inputs.sources.get("features")
         if fw is None or math.isnan(fw.wall):
             return {}
         out = {}
         for k, why in self.models.stale(now).items():
             s = self.models.sources[k]
-            last = s.wall if not math.isnan(s.wall) else s.since_wall
+            last = max(s.wall if not math.isnan(s.wall) else s.since_wall, fw.first_wall)
             if fw.wall - last > self.models.wall_timeout_s:
                 out[k] = why
         return out

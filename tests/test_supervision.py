@@ -306,7 +306,7 @@ def test_models_on_line_before_the_data_are_not_stale_at_its_first_segment(tmp_p
     judged from the first features on, so the first segments are diagnosed on the whole bank
     (as offline), not declared stale and skipped."""
     core = _core(tmp_path)
-    ready = {m: False for m in core.driver.nodes}
+    ready = dict.fromkeys(core.driver.nodes, False)
     core.tick(0.0, ready, None)  # the bank on line at wall 0
     notes = []
     for k in range(10):  # the data starts at wall 5

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections import deque
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -82,7 +83,7 @@ class ExtendedResidualModel:
 
 
 @register_residual_model("discrepancy_extended")
-def _make(spec: dict, *, base_dir: Path, model_id: str) -> ExtendedResidualModel:
+def _make(spec: dict[str, Any], *, base_dir: Path, model_id: str) -> ExtendedResidualModel:
     unknown = set(spec) - {"path", "history_s"}
     if unknown:
         raise ValueError(f"discrepancy_extended: unknown keys {sorted(unknown)}")

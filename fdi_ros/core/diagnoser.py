@@ -135,15 +135,6 @@ class Diagnoser:
                         k == self.reference_id or not v.norm > self.explain_norm)}
                     not_isolable = not any(k != self.reference_id and v.valid
                                            for k, v in feed.items())
-                    # A candidate whose model is away (dead, silent, moved by someone else: no
-                    # residuals at this step) might explain the data better than any model on
-                    # line, so a partial bank isolates nothing: "detected, not isolable", the
-                    # candidates named (below). Offline every on-line model answers.
-                    if any(m.id not in residuals for m in self.supervisor.bank
-                           if m.id in self.supervisor.models_online
-                           and m.fault_types & set(candidates)):
-                        feed = {k: v for k, v in feed.items() if k == self.reference_id}
-                        not_isolable = True
         fm = feed.get(self.supervisor.fault_model)
         if fm is None or not fm.valid:
             # The model believed to match the plant (nominal at start) is the baseline of the

@@ -415,20 +415,18 @@ class SupervisorCore:
         from dataclasses import replace
 
         out: list = []
-        expected = self._expected()
-        for st in self.aligner.ready(expected):
+        for st in self.aligner.ready(self._expected()):
             sym = self._symptoms.pop(st.index, None)
             # A silent model (frozen, overloaded, or gone without leaving the graph yet) is
-            # reported STALE and away, as a dead one is: steps do not wait for it (the others
-            # would pile up) and its residuals are not valid until it is back (a backlog it
-            # flushes on waking is not mixed into fresh steps). Without the reference model
-            # the step is "not valid" (no symptom); without a candidate's model the diagnoser
-            # isolates nothing ("detected, not isolable", the candidates named).
+            # reported STALE and left out, as a dead one is: steps do not wait for it (the
+            # others would pile up). Dropping its residuals or blocking every isolation while
+            # it is away was tried and rejected: a model starved for model_wall_s on a busy
+            # machine then restarts the hold time T0 and delays a true isolation (a different
+            # diagnosis from the load alone); no-elimination already keeps the rest from
+            # isolating a fault the away model would explain, and names it "(model away)".
             skip = not st.complete
-            used = {m: r for m, r in st.residuals.items() if m in expected}
-            ref_away = self.diag.reference_id not in used
-            step = self.diag.update(st.index, st.t, {} if skip else used,
-                                    symptoms=None if skip or ref_away else sym)
+            step = self.diag.update(st.index, st.t, {} if skip else st.residuals,
+                                    symptoms=None if skip else sym)
             d = step.diagnosis
             if skip:
                 d = replace(d, state="not_valid" if not d.isolated_faults else d.state,

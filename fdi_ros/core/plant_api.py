@@ -36,6 +36,8 @@ class Preprocessor(Protocol):
 
     def mark_gap(self) -> None: ...  # blocks were lost before the next push
 
+    def reset(self) -> None: ...  # start over (a restarted source)
+
 
 class FaultQueue:
     """Fault events ordered by plant time; each is handed out once when time reaches it."""

@@ -12,6 +12,7 @@ Parameters: ``bag`` (output directory, required), ``topics`` (extra topics; defa
 from __future__ import annotations
 
 import threading
+from functools import partial
 from typing import Any
 
 from rclpy.node import Node
@@ -69,7 +70,7 @@ class RecorderNode(Node):
         qos = LATCHED_QOS if topic.startswith("/fdi/fault_") else DATA_QOS
         cls = _msg_class(msgtype)
         self._subs[topic] = self.create_subscription(
-            cls, topic, lambda data, t=topic, m=msgtype: self._on_msg(t, m, data), qos, raw=True)
+            cls, topic, partial(self._on_msg, topic, msgtype), qos, raw=True)
 
     def _scan(self) -> None:
         for topic, types in self.get_topic_names_and_types():

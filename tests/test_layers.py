@@ -1,5 +1,5 @@
 """Module layering of fdi_ros, read from the source (every import statement, function-level
-ones included): no import cycles; the core imports no plant wing, node, command or rclpy; no
+ones included, and every module named in a string to be imported by name): no import cycles; the core imports no plant wing, node, command or rclpy; no
 plant is named in code (identifiers or strings, any case) outside the wings and the commands;
 every node file is thin (at most 150 lines)."""
 
@@ -44,6 +44,9 @@ def _imports(name: str, path: Path, known: set[str]) -> set[str]:
             subs = {f"{base}.{a.name}" for a in node.names} & known
             # "from pkg import mod" depends on pkg.mod (and on pkg only for its other names)
             out.update(subs if len(subs) == len(node.names) else subs | {base})
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) \
+                and node.value.partition(":")[0] in known:
+            out.add(node.value.partition(":")[0])  # imported by name ("module" or "module:attr")
     # "import a.b.c" depends on a.b.c; keep the longest known module name of each import
     resolved = set()
     for imp in out:
@@ -108,10 +111,10 @@ def test_cycle_finder_finds_a_planted_cycle():
 def test_import_reader_sees_function_level_imports(tmp_path):
     f = tmp_path / "m.py"
     f.write_text("from fdi_ros import bag\n\n\ndef f():\n    from fdi_ros.plants import diesel\n"
-                 "    import rclpy.node\n")
+                 "    import rclpy.node\n    return {'k': 'fdi_ros.nodes.x:make'}\n")
     got = _imports("fdi_ros.core.m", f, {"fdi_ros", "fdi_ros.bag", "fdi_ros.plants",
-                                          "fdi_ros.plants.diesel"})
-    assert got == {"fdi_ros.bag", "fdi_ros.plants.diesel", "rclpy"}
+                                          "fdi_ros.plants.diesel", "fdi_ros.nodes.x"})
+    assert got == {"fdi_ros.bag", "fdi_ros.plants.diesel", "rclpy", "fdi_ros.nodes.x"}
 
 
 def test_no_import_cycles():

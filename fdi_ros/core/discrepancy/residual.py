@@ -25,7 +25,6 @@ import numpy as np
 
 from fdi_ros.core.discrepancy.model import ExtendedModel
 from fdi_ros.core.measured import Measured
-from fdi_ros.core.residual_models import register_residual_model
 from fdi_ros.core.types import FeatureVector, ResidualVector
 
 
@@ -81,8 +80,9 @@ class ExtendedResidualModel:
                               norm=float(np.linalg.norm(v)))
 
 
-@register_residual_model("discrepancy_extended")
-def _make(spec: dict, *, base_dir: Path, model_id: str) -> ExtendedResidualModel:
+def make_residual_model(spec: dict, *, base_dir: Path, model_id: str) -> ExtendedResidualModel:
+    """The bank model of kind ``discrepancy_extended`` (registered by
+    :data:`fdi_ros.core.residual_models.KINDS`)."""
     unknown = set(spec) - {"path", "history_s"}
     if unknown:
         raise ValueError(f"discrepancy_extended: unknown keys {sorted(unknown)}")

@@ -35,9 +35,11 @@ def test_random_cases_found_and_nulls_clean(baseline):
     # open), so a random null here would make the test fail by chance, not by a regression.
     out = run_selftest(5, seed, n_null=0, baseline=baseline)
     why = f"seed {seed}: misses {out['misses']}"
-    # at most one miss in five (the acceptance run of 60 + 10 is reported in the docs)
+    # at most one miss in five (the acceptance run of 60 + 10 is reported in the docs); a
+    # reported tie that contains the truth (e.g. a lag or a dead time of an input sensor,
+    # which nothing the model predicts separates) is not a miss
     assert out["n_cases"] == 5 and out["n_nulls"] == 0
-    assert out["top1_effect_and_channel"] >= 0.8, why
+    assert out["top1_or_tie"] >= 0.8, why
     pe = out["parameter_rel_error"]
     assert pe["within_tolerance"] >= pe["of"] - 1, why
     rows = out["confusion"]["rows"]

@@ -172,11 +172,13 @@ def run_selftest(args: argparse.Namespace) -> int:
     path.write_text(json.dumps(out, indent=1, default=float))
     acc = out["top1_effect_and_channel"]
     pe = out["parameter_rel_error"]
+    key = "top1_or_tie"
     say(f"top-1 effect and channel right: "
         f"{'n/a' if acc is None else f'{100 * acc:.0f} %'} of {out['n_cases']}; "
         f"parameter within {100 * pe['tolerance']:.0f} %: {pe['within_tolerance']}/{pe['of']}; "
         f"false discoveries: {out['false_discoveries']}/{out['n_nulls']} nulls; "
-        f"ties containing the truth: {out['ties_containing_truth']} -> {path}")
+        f"ties containing the truth: {out['ties_containing_truth']} "
+        f"(top-1 or tie: {'n/a' if acc is None else f'{100 * out[key]:.0f} %'}) -> {path}")
     return 0
 
 

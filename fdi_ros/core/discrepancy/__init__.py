@@ -8,7 +8,9 @@ The pieces: :mod:`.context` (what an effect sees), :mod:`.effects` (the catalogu
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -42,8 +44,9 @@ def _tag_views(res: DiscrepancyResult) -> DiscrepancyResult:
     return res
 
 
-def discover(data: Measured, model, *, config: DiscrepancyConfig | None = None,
-             progress=None) -> tuple[DiscrepancyResult, ExtendedModel]:
+def discover(data: Measured, model: Any, *, config: DiscrepancyConfig | None = None,
+             progress: Callable[[str], None] | None = None
+             ) -> tuple[DiscrepancyResult, ExtendedModel]:
     """Analyse ``data`` against ``model`` (:func:`_discover`), then name honest ties.
 
     A gain error found on a channel is checked against gains on each of the model's input
@@ -53,7 +56,8 @@ def discover(data: Measured, model, *, config: DiscrepancyConfig | None = None,
     res, ext = _discover(data, model, config=config, progress=progress)
     cfg = config or DiscrepancyConfig()
     for i, f in enumerate(res.findings):
-        if f.effect != "gain_error" or "gain" not in f.params or "changes_s" in f.params:
+        if (f.effect != "gain_error" or "gain" not in f.params or "changes_s" in f.params
+                or _is_sensor(f)):
             continue
         try:
             tied = input_gain_ties(data, model, f.channel, float(f.params["gain"]),
@@ -62,6 +66,8 @@ def discover(data: Measured, model, *, config: DiscrepancyConfig | None = None,
             if progress:
                 progress(f"input-gain tie check on {f.channel} skipped: {exc}")
             continue
+        have = {a.get("channel") for a in f.alternatives if a.get("effect") == "gain_error"}
+        tied = [a for a in tied if a["channel"] not in have]
         if tied:
             res.findings[i] = replace(f, alternatives=list(f.alternatives) + tied)
             if progress:
@@ -70,8 +76,14 @@ def discover(data: Measured, model, *, config: DiscrepancyConfig | None = None,
     return res, ext
 
 
-def _discover(data: Measured, model, *, config: DiscrepancyConfig | None = None,
-              progress=None) -> tuple[DiscrepancyResult, ExtendedModel]:
+def _is_sensor(f: Finding) -> bool:
+    """A finding that is an error of an input sensor (seen on another channel's residual)."""
+    return bool(f.model_channel) and f.channel != f.model_channel
+
+
+def _discover(data: Measured, model: Any, *, config: DiscrepancyConfig | None = None,
+              progress: Callable[[str], None] | None = None
+              ) -> tuple[DiscrepancyResult, ExtendedModel]:
     """Analyse ``data`` against the baseline ``model``; return the result and extended model.
 
     Crank-angle resolved data and a model that predicts the pulsation (``model.orders``) are
@@ -88,23 +100,47 @@ def _discover(data: Measured, model, *, config: DiscrepancyConfig | None = None,
         # crank-resolved data, mean-value model: compare the means of the 180 deg CA segments
         data, view = segment_means(data), "segment means"
     if data.alpha is None or not getattr(model, "orders", ()):
-        res = analyse(build_contexts(data, model), config=cfg, progress=progress)
+        res = analyse(build_contexts(data, model, sensors=True), config=cfg,
+                      progress=progress)
         res.findings = [replace(f, view=view) for f in res.findings]
         return res, ExtendedModel(baseline=model, chains=res.chains, source=data.source)
     mean_model = model.without_pulsation()
     stage1 = tuple(e for e in cfg.effects if e in ("sensor_lag", "dead_time"))
     stage3 = tuple(e for e in cfg.effects if e == "missing_harmonic")
-    cfg_a = replace(cfg, effects=tuple(e for e in cfg.effects if e not in CRANK_VIEW))
+    cfg_a = replace(cfg, effects=tuple(e for e in cfg.effects if e not in CRANK_VIEW),
+                    sensor_effects=cfg.sensor_effects or cfg.effects)
+    means = segment_means(data)
+
+    def on_top(ctxs: dict[str, ChannelContext], before: DiscrepancyResult | None
+               ) -> dict[str, ChannelContext]:
+        for ch, ctx in ctxs.items():
+            if before is not None:
+                ctx.yhat = apply_chain(ctx, before.chains.get(ch, []))
+        return ctxs
+
     res_1 = None
     if stage1:
         res_1 = analyse(build_contexts(data, model),
                         config=replace(cfg, effects=stage1, max_findings=1),
                         progress=progress)
-    ctx_a = build_contexts(segment_means(data), mean_model)
-    if res_1 is not None:
-        for ch, ctx in ctx_a.items():
-            ctx.yhat = apply_chain(ctx, res_1.chains.get(ch, []))
-    res_a = analyse(ctx_a, config=cfg_a, progress=progress)
+    res_a = analyse(on_top(build_contexts(means, mean_model, sensors=True), res_1),
+                    config=cfg_a, progress=progress)
+    if res_1 is not None and res_1.findings and any(_is_sensor(f) for f in res_a.findings):
+        # Joint check: an input sensor's error moves every part of the prediction made from
+        # that input, the pulsation included. When the sensor error found on the means alone
+        # also explains the crank-resolved view, the lag or dead time found there first was
+        # its echo: the sensor error is kept, the echo dropped.
+        alone = analyse(build_contexts(means, mean_model, sensors=True), config=cfg_a,
+                        progress=progress)
+        if alone.findings and _is_sensor(alone.findings[0]):
+            again = analyse(on_top(build_contexts(data, model), alone),
+                            config=replace(cfg, effects=stage1, max_findings=1),
+                            progress=progress)
+            if not again.findings:
+                if progress:
+                    progress("crank-view finding explained by "
+                             f"{alone.findings[0].label}: dropped")
+                res_1, res_a = None, alone
     if res_1 is not None:
         res_a = merge_results(res_1, res_a, b_suffix="", b_channels=False)
     if not stage3:

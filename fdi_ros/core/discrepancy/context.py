@@ -10,6 +10,7 @@ time derivatives of all measured signals), the operating-region coordinates of t
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -45,7 +46,7 @@ class LeakSpec:
     flow_scale: float = 1.0
     cd: float = 0.7
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         return dict(channel=self.channel, p_in=self.p_in, T_in=self.T_in, p_amb=self.p_amb,
                     T_amb=self.T_amb, flow_scale=self.flow_scale, cd=self.cd)
 
@@ -62,7 +63,7 @@ def orifice_flux(p_up: np.ndarray, T_up: np.ndarray, p_down: np.ndarray,
     pr = np.clip(p_down / p_up, pr_crit, 1.0)
     psi = np.sqrt(np.maximum(2.0 * kappa / (kappa - 1.0)
                              * (pr ** (2.0 / kappa) - pr ** ((kappa + 1.0) / kappa)), 0.0))
-    return p_up / np.sqrt(R_AIR * T_up) * psi
+    return np.asarray(p_up / np.sqrt(R_AIR * T_up) * psi, float)
 
 
 def leak_regressor(data: Measured, spec: LeakSpec) -> np.ndarray:
@@ -119,9 +120,89 @@ class ChannelContext:
     leak_q: np.ndarray | None = None
     leak: LeakSpec | None = None
     t_ref: float = 0.0
-    cache: dict = field(default_factory=dict, repr=False)
-    folds: tuple | None = field(default=None, repr=False)  # left-out intervals (i0, i1, fold)
-    fold_ids: dict = field(default_factory=dict, repr=False)    # id(train mask) -> fold
+    cache: dict[Any, Any] = field(default_factory=dict, repr=False)
+    # left-out index intervals of the folds (i0, i1, fold)
+    folds: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+    fold_ids: dict[int, int] = field(default_factory=dict, repr=False)    # id(train mask) -> fold
+    sensors: tuple[str, ...] = ()  # input sensors whose errors are candidate explanations
+    source: Any = field(default=None, repr=False)  # (data, model) behind ``sensor_response``
+    responses: dict[Any, np.ndarray] = field(default_factory=dict, repr=False)
+
+    def sensor_shift_response(self, sensor: str, delay_s: float) -> np.ndarray:
+        """``yhat(x(t + d)) - yhat(x(t))``: the prediction from the reading of ``sensor``
+        advanced by ``delay_s`` (per segment, linear interpolation), minus the prediction.
+
+        A reading that trails the truth by a dead time d, or by a first-order lag tau (to
+        first order the same as a delay tau for a slowly varying signal), is undone by the
+        advance; computed exactly (no derivative of a noisy reading). Cached per delay.
+        """
+        key = (sensor, "shift", round(float(delay_s), 9))
+        if key in self.responses:
+            return self.responses[key]
+        if self.source is None:
+            raise ValueError(f"no model behind channel {self.channel}")
+        data, model = self.source
+        x = np.asarray(data[sensor], float)
+        adv = np.empty_like(x)
+        seg = np.asarray(data.segment)
+        cuts = np.flatnonzero(np.diff(seg)) + 1
+        for a, b in zip(np.r_[0, cuts], np.r_[cuts, x.size]):
+            ts, xs = data.t[a:b], x[a:b]
+            okx = np.isfinite(xs)
+            adv[a:b] = (np.interp(ts + delay_s, ts[okx], xs[okx]) if okx.sum() > 1
+                        else np.nan)
+        pred = model.predict(_replaced(data, sensor, adv))[self.channel]
+        base = self.sensor_base()
+        out: np.ndarray = np.asarray(pred, float) - base
+        self.responses[key] = out
+        return out
+
+    def sensor_base(self) -> np.ndarray:
+        """The model's own prediction of this channel (before any extension)."""
+        if "base" not in self.responses:
+            data, model = self.source
+            self.responses["base"] = np.asarray(model.predict(data)[self.channel], float)
+        return self.responses["base"]
+
+    def sensor_response(self, sensor: str, direction: str) -> np.ndarray:
+        """How this channel's prediction moves per unit error of an input sensor.
+
+        ``D(d) = (yhat(x + h d) - yhat(x - h d)) / (2 h)`` with the model re-run on the
+        perturbed input ``x`` of ``sensor`` (central difference, step small against the
+        signal): the directional derivative of the prediction along the sensor error shape
+        ``d``. Directions: ``one`` (an offset), ``x`` (a gain: the reading itself),
+        ``t`` (a drift: time since ``t_ref``), ``dxdt`` (the reading's slope) and
+        ``col:NAME`` (an error that follows the measured column NAME, standardised). Cached
+        per context.
+        """
+        key = (sensor, direction)
+        if key in self.responses:
+            return self.responses[key]
+        if self.source is None:
+            raise ValueError(f"no model behind channel {self.channel}: sensor errors of "
+                             f"{sensor} cannot be evaluated")
+        data, model = self.source
+        x = np.asarray(data[sensor], float)
+        if direction == "one":
+            d = np.ones_like(x)
+        elif direction == "x":
+            d = x
+        elif direction == "t":
+            d = data.t - self.t_ref
+        elif direction == "dxdt":
+            d = smooth_derivative(x, data.t, data.segment, 0.25)
+        elif direction.startswith("col:"):
+            z = np.asarray(data[direction[4:]], float)
+            d = (z - np.nanmean(z)) / (np.nanstd(z) or 1.0)
+        else:
+            raise ValueError(f"unknown sensor error direction {direction!r}")
+        d = np.where(np.isfinite(d), d, 0.0)
+        h = 1e-4 * float(np.nanmedian(np.abs(x)) or 1.0) / float(np.sqrt(np.mean(d ** 2)) or 1.0)
+        up = model.predict(_replaced(data, sensor, x + h * d))[self.channel]
+        dn = model.predict(_replaced(data, sensor, x - h * d))[self.channel]
+        out: np.ndarray = (np.asarray(up, float) - np.asarray(dn, float)) / (2.0 * h)
+        self.responses[key] = out
+        return out
 
     @property
     def n(self) -> int:
@@ -130,20 +211,31 @@ class ChannelContext:
     @property
     def ok(self) -> np.ndarray:
         """Samples where both measurement and prediction exist."""
-        return np.isfinite(self.y) & np.isfinite(self.yhat)
+        return np.asarray(np.isfinite(self.y) & np.isfinite(self.yhat))
 
     @property
     def dt(self) -> float:
         return float(np.median(np.diff(self.t)))
 
 
-def build_contexts(data: Measured, model, *, derivative_window_s: float = 0.25,
-                   t_ref: float | None = None) -> dict[str, ChannelContext]:
+def _replaced(data: Measured, name: str, x: np.ndarray) -> Measured:
+    sig = dict(data.signals)
+    sig[name] = x
+    return Measured(t=data.t, signals=sig, units=dict(data.units), alpha=data.alpha,
+                    segment=data.segment, source=data.source, mapped=data.mapped)
+
+
+def build_contexts(data: Measured, model: Any, *, derivative_window_s: float = 0.25,
+                   t_ref: float | None = None, sensors: bool = False
+                   ) -> dict[str, ChannelContext]:
     """One context per channel the model predicts and the data measures.
 
     ``model`` follows :class:`fdi_ros.core.discrepancy.model.BaselineModel`. Candidate columns
     are the measured signals the model does not use (minus the channel itself) and ``d/dt`` of
-    every measured signal (lags and filling dynamics show there).
+    every measured signal (lags and filling dynamics show there). ``sensors``: the model's
+    input sensors (and the other predicted channels) become candidate carriers of a sensor
+    error, judged by how the error would move this channel's prediction
+    (:meth:`ChannelContext.sensor_response`).
     """
     pred = model.predict(data)
     region = model.region(data)
@@ -170,7 +262,13 @@ def build_contexts(data: Measured, model, *, derivative_window_s: float = 0.25,
                                  y=np.asarray(data[ch], float), yhat=np.asarray(pred[ch], float),
                                  segment=data.segment, columns=cols, region=region,
                                  alpha=data.alpha, leak_q=q, leak=spec,
-                                 t_ref=float(data.t[0] if t_ref is None else t_ref))
+                                 t_ref=float(data.t[0] if t_ref is None else t_ref),
+                                 sensors=(tuple(s for s in dict.fromkeys(model.inputs)
+                                                if s in data.signals and s != ch
+                                                and np.isfinite(data[s]).mean() > 0.5
+                                                and np.nanstd(data[s]) > 0)
+                                          if sensors else ()),
+                                 source=(data, model))
     if not out:
         raise ValueError(f"the measured data has none of the model's channels {model.channels} "
                          f"(signals: {sorted(data.signals)})")

@@ -237,7 +237,7 @@ def _relative_change_point(y: np.ndarray, base: np.ndarray, t: np.ndarray, m: np
     return float(t[idx[j + 1]]) if stat[j] > 0 else None
 
 
-def _piecewise_beta(t: np.ndarray, params: dict) -> np.ndarray:
+def _piecewise_beta(t: np.ndarray, params: dict[str, Any]) -> np.ndarray:
     return np.asarray(params["values"])[np.searchsorted(params["changes_s"], t, side="right")]
 
 
@@ -266,14 +266,14 @@ class Effect:
         return 1
 
     def fit(self, ctx: ChannelContext, base: np.ndarray, train: np.ndarray, *,
-            refine: bool = False) -> dict:
+            refine: bool = False) -> dict[str, Any]:
         """Parameters fitted on the ``train`` samples; ``refine``: final (polished) fit."""
         raise NotImplementedError
 
-    def apply(self, ctx: ChannelContext, base: np.ndarray, params: dict) -> np.ndarray:
+    def apply(self, ctx: ChannelContext, base: np.ndarray, params: dict[str, Any]) -> np.ndarray:
         raise NotImplementedError
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         d = {"effect": self.id}
         d.update({k: getattr(self, k) for k in self.__dataclass_fields__})
         return d
@@ -609,6 +609,99 @@ class MissingHarmonic(Effect):
         return base + A @ np.array([params["a"], params["b"]])
 
 
+# sensor errors an input sensor can carry: direction of the error (ChannelContext.
+# sensor_response), the parameter, and the parameter from the fitted coefficient beta of
+# ``r ~ beta * D(direction)`` (the model must be fed the reading minus the error)
+SENSOR_KINDS: dict[str, tuple[str, str, Any]] = {
+    "offset": ("one", "offset", lambda b: -b),
+    "gain_error": ("x", "gain", lambda b: 1.0 / (1.0 + b) if b > -1.0 else math.inf),
+    "drift": ("t", "rate_per_s", lambda b: -b),
+    "sensor_lag": ("shift", "tau_s", lambda b: b),  # fitted as an advance of the reading
+    "dead_time": ("shift", "delay_s", lambda b: b),
+    "input_dependence": ("col", "coef", lambda b: -b),
+}
+
+
+@dataclass(frozen=True)
+class SensorError(Effect):
+    """An error of an input sensor of the model, seen through the model on this channel.
+
+    A sensor reading ``x = x_true + e(t)`` feeds the model a wrong input; the channel's
+    prediction is wrong by about ``D(e)`` (:meth:`ChannelContext.sensor_response`). The fit
+    regresses the residual on ``D`` of the error's shape: an offset (constant), a gain
+    (proportional to the reading), a drift (proportional to time) or a dependence on a
+    measured column. A lag or dead time is fitted as the advance of the reading that explains
+    the residual best (:meth:`ChannelContext.sensor_shift_response`; a first-order lag tau and
+    a delay d = tau make a slowly varying reading trail the truth alike).
+    ``onset``: offset and gain switch on at an unknown time (an abrupt fault).
+    """
+
+    sensor: str = ""
+    kind: str = "offset"
+    column: str = ""
+    onset: bool = False
+    piecewise = False  # (class constant) never piecewise in time: nests only by onset
+
+    @property
+    def id(self) -> str:  # type: ignore[override]
+        return self.kind
+
+    @property
+    def label(self) -> str:
+        name = {"gain_error": "gain error", "sensor_lag": "sensor lag",
+                "dead_time": "dead time"}.get(self.kind, self.kind)
+        if self.kind == "input_dependence":
+            name = f"input_dependence on {self.column}"
+        return f"{name} of {self.sensor}" + (" after onset" if self.onset else "")
+
+    @property
+    def n_params(self) -> int:
+        return 2 if self.onset else 1
+
+    def _direction(self) -> str:
+        d = SENSOR_KINDS[self.kind][0]
+        return f"col:{self.column}" if d == "col" else d
+
+    max_delay_s: float = 5.0
+
+    def _shifted(self, ctx: ChannelContext, base: np.ndarray, v: float) -> np.ndarray:
+        corr = ctx.sensor_shift_response(self.sensor, v)
+        return base + np.where(np.isfinite(corr), corr, 0.0)
+
+    def fit(self, ctx: ChannelContext, base: np.ndarray, train: np.ndarray, *,
+            refine: bool = False) -> dict[str, Any]:
+        _, key, value = SENSOR_KINDS[self.kind]
+        if self.kind in ("sensor_lag", "dead_time"):
+            dur = ctx.t[-1] - ctx.t[0]
+            hi = max(min(self.max_delay_s, dur / 12.0), 2 * ctx.dt)
+            v = _fit_1d(ctx, base, train, lambda d: self._shifted(ctx, base, d), 0.2 * ctx.dt,
+                        hi, log=True, key=self.label, refine=refine, n_grid=36)
+            return {key: float(v), "sensor": self.sensor}
+        g = ctx.sensor_response(self.sensor, self._direction())
+        m = _train_mask(ctx, base, train, g)
+        b, t_on = _fit_scalar(ctx.y - base, g, ctx.t, m, onset=self.onset, nonneg=False)
+        out: dict[str, Any] = {key: float(value(b)), "beta": float(b), "sensor": self.sensor}
+        if self.onset:
+            out["onset_s"] = t_on
+        if self.kind == "drift":
+            out["t_ref_s"] = ctx.t_ref
+        if self.kind == "input_dependence":
+            out["input"] = self.column
+        return out
+
+    def apply(self, ctx: ChannelContext, base: np.ndarray, params: dict[str, Any]
+              ) -> np.ndarray:
+        if self.kind in ("sensor_lag", "dead_time"):
+            return self._shifted(ctx, base, float(params[SENSOR_KINDS[self.kind][1]]))
+        g = ctx.sensor_response(self.sensor, self._direction())
+        corr = params["beta"] * g * _step(ctx.t, params.get("onset_s"))
+        return base + np.where(np.isfinite(corr), corr, 0.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"effect": "sensor_error", "sensor": self.sensor, "kind": self.kind,
+                "column": self.column, "onset": self.onset}
+
+
 def _box_mask(region: dict[str, np.ndarray], box: dict[str, list[float]]) -> np.ndarray:
     m = None
     for name, (lo, hi) in box.items():
@@ -687,7 +780,7 @@ class LocalRegion(Effect):
             box[name] = [lo, hi]
         reg = {n: c[m] for n, c in zip(names, cols)}
 
-        def gain(b: dict) -> float:  # SSE reduction of the best offset inside box b
+        def gain(b: dict[str, Any]) -> float:  # SSE reduction of the best offset inside box b
             ins = _box_mask(reg, b)
             k = int(ins.sum())
             return float(r[ins].sum()) ** 2 / k if k >= 5 else 0.0
@@ -724,10 +817,12 @@ EFFECT_TYPES = {cls.id: cls for cls in (Offset, GainError, Drift, SensorLag, Dea
                                         InputDependence, Leak, MissingHarmonic, LocalRegion)}
 
 
-def effect_from_dict(d: dict) -> Effect:
+def effect_from_dict(d: dict[str, Any]) -> Effect:
     """Rebuild an effect from :meth:`Effect.to_dict`."""
     d = dict(d)
     kind = d.pop("effect")
+    if kind == "sensor_error":
+        return SensorError(**d)
     if kind not in EFFECT_TYPES:
         raise ValueError(f"unknown effect {kind!r}; known: {sorted(EFFECT_TYPES)}")
     if "orders" in d:
@@ -736,9 +831,15 @@ def effect_from_dict(d: dict) -> Effect:
 
 
 def candidates(ctx: ChannelContext, *, effects: tuple[str, ...] = CATALOGUE,
-               onset: bool = True) -> list[Effect]:
-    """Every candidate extension applicable to this channel's data."""
+               onset: bool = True, sensor_effects: tuple[str, ...] | None = None
+               ) -> list[Effect]:
+    """Every candidate extension applicable to this channel's data: the ``effects`` on the
+    channel itself, and the ``sensor_effects`` (default: ``effects``) on each input sensor of
+    its model (:class:`SensorError`; only when the context names sensors)."""
     out: list[Effect] = []
+    for e in (effects if sensor_effects is None else sensor_effects):
+        if e in SENSOR_KINDS:
+            out += _sensor_candidates(ctx, e, onset)
     for e in effects:
         if e == "offset":
             out += [Offset()] + ([Offset(onset=True), Offset(piecewise=True)] if onset else [])
@@ -765,4 +866,18 @@ def candidates(ctx: ChannelContext, *, effects: tuple[str, ...] = CATALOGUE,
                 out.append(MissingHarmonic(orders=orders))
         elif e == "local_region" and ctx.region:
             out.append(LocalRegion())
+    return out
+
+
+def _sensor_candidates(ctx: ChannelContext, kind: str, onset: bool) -> list[Effect]:
+    """The errors of kind ``kind`` on each input sensor of the channel's model."""
+    out: list[Effect] = []
+    for s in ctx.sensors:
+        if kind == "input_dependence":
+            out += [SensorError(sensor=s, kind=kind, column=c) for c in ctx.columns
+                    if not c.startswith("d/dt ")]
+        else:
+            out.append(SensorError(sensor=s, kind=kind))
+            if onset and kind in ("offset", "gain_error"):
+                out.append(SensorError(sensor=s, kind=kind, onset=True))
     return out

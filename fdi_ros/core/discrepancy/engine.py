@@ -16,7 +16,9 @@ Procedure for each channel (greedy forward selection, at most ``max_findings`` s
    ``d_b = MSE_before_b - MSE_after_b`` (zero differences dropped). Blocks, not samples, are
    the units: within a block the residuals are correlated, the blocks (several seconds, long
    against the correlation time) are treated as independent. The p-value is
-   Bonferroni-corrected over all candidates of the step and all channels. A Diebold-Mariano
+   Bonferroni-corrected over the channel's own candidates of the step and all channels (the
+   errors of the model's input sensors are other carriers of the same shapes: they compete
+   for the attribution, they do not add chances of a false discovery). A Diebold-Mariano
    test on the per-sample loss differential with a Newey-West variance is reported alongside
    (``p_dm``).
 4. Choice: the candidate with the lowest held-out MSE; a special case of it (the same effect
@@ -41,6 +43,7 @@ from scipy import stats
 
 from fdi_ros.core.discrepancy.context import ChannelContext
 from fdi_ros.core.discrepancy.effects import CATALOGUE, Effect, candidates
+from fdi_ros.core.discrepancy.ties import tie_reason
 
 
 @dataclass(frozen=True)
@@ -62,6 +65,8 @@ class DiscrepancyConfig:
         default a quarter of a block.
     effects : catalogue ids to try.
     onset : also try offset/gain/leak switching on at an unknown time (an abrupt fault).
+    sensor_effects : catalogue ids tried as errors of the model's input sensors (contexts
+        built with ``sensors=True``); default: ``effects``.
     """
 
     n_blocks: int | None = None
@@ -73,6 +78,7 @@ class DiscrepancyConfig:
     guard_s: float | None = None
     effects: tuple[str, ...] = CATALOGUE
     onset: bool = True
+    sensor_effects: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.n_blocks is not None and self.n_blocks < 4:
@@ -83,7 +89,7 @@ class DiscrepancyConfig:
             raise ValueError("alpha must be in (0, 1)")
         if self.max_findings < 1:
             raise ValueError("max_findings must be >= 1")
-        bad = set(self.effects) - set(CATALOGUE)
+        bad = (set(self.effects) | set(self.sensor_effects or ())) - set(CATALOGUE)
         if bad:
             raise ValueError(f"unknown effects {sorted(bad)}; catalogue: {CATALOGUE}")
 
@@ -113,7 +119,7 @@ class Finding:
     effect: str
     label: str
     channel: str
-    params: dict
+    params: dict[str, Any]
     rmse_before: float
     rmse_after: float
     gain_pct: float
@@ -123,11 +129,14 @@ class Finding:
     significant: bool
     n_params: int
     step: int
-    alternatives: list = field(default_factory=list)
+    alternatives: list[dict[str, Any]] = field(default_factory=list)
     view: str = "samples"  # "samples", "segment means" or "crank-resolved"
+    model_channel: str = ""  # the residual that shows it (a sensor error of an input: the
+    # channel the model predicts from that input); empty: ``channel`` itself
 
-    def to_dict(self) -> dict:
-        return _jsonable(asdict(self))
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = _jsonable(asdict(self))
+        return out
 
 
 @dataclass
@@ -139,16 +148,16 @@ class DiscrepancyResult:
     verdict: str
     message: str
     success: bool
-    channels: dict[str, dict]
-    chains: dict[str, list[tuple[Effect, dict]]]
+    channels: dict[str, dict[str, Any]]
+    chains: dict[str, list[tuple[Effect, dict[str, Any]]]]
     n_blocks: int
     nit: int
     seconds: float
     config: DiscrepancyConfig
     oof: dict[str, dict[str, np.ndarray]] = field(default_factory=dict, repr=False)
 
-    def to_dict(self) -> dict:
-        return _jsonable({
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = _jsonable({
             "verdict": self.verdict,
             "message": self.message,
             "success": self.success,
@@ -170,9 +179,10 @@ class DiscrepancyResult:
             },
             "seconds": self.seconds,
         })
+        return out
 
 
-def _jsonable(x):
+def _jsonable(x: Any) -> Any:
     if isinstance(x, dict):
         return {str(k): _jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
@@ -202,7 +212,7 @@ def make_blocks(t: np.ndarray, ok: np.ndarray, n_blocks: int) -> np.ndarray:
 
 
 def fit_chain(ctx: ChannelContext, chain: list[Effect], train: np.ndarray, *,
-              refine: bool = False) -> tuple[np.ndarray, list[dict]]:
+              refine: bool = False) -> tuple[np.ndarray, list[dict[str, Any]]]:
     """Fit the effects one after the other on ``train``; the full-length prediction."""
     pred = ctx.yhat
     params = []
@@ -213,7 +223,7 @@ def fit_chain(ctx: ChannelContext, chain: list[Effect], train: np.ndarray, *,
     return pred, params
 
 
-def apply_chain(ctx: ChannelContext, chain: list[tuple[Effect, dict]]) -> np.ndarray:
+def apply_chain(ctx: ChannelContext, chain: list[tuple[Effect, dict[str, Any]]]) -> np.ndarray:
     pred = ctx.yhat
     for eff, p in chain:
         pred = eff.apply(ctx, pred, p)
@@ -293,7 +303,7 @@ def loss_differential_p(e_before: np.ndarray, e_after: np.ndarray) -> tuple[floa
 def _nests(big: Effect, small: Effect) -> bool:
     """True when ``small`` is a special case of ``big`` (the same effect with fewer change
     times: always on < after an onset < piecewise constant in time)."""
-    if big.id != small.id:
+    if big.id != small.id or getattr(big, "sensor", "") != getattr(small, "sensor", ""):
         return False
     if getattr(big, "piecewise", False):
         return not getattr(small, "piecewise", True)
@@ -316,8 +326,16 @@ def _one_se_choice(scored: list[tuple[Effect, Candidate]], alpha: float
     def within_one_se(c: Candidate) -> bool:
         d = c.mse_blocks - best[1].mse_blocks
         d = d[np.isfinite(d)]
-        return d.size >= 3 and d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size) + tol
+        return bool(d.size >= 3 and d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size) + tol)
 
+    if getattr(best[0], "sensor", ""):
+        # the same kind of error on the analysed channel itself, within one standard error of
+        # an input sensor's: the channel's own error is named (it needs no second faulty
+        # sensor), the input sensor's stays among the reported ties
+        own = [(eff, c) for eff, c in scored if not getattr(eff, "sensor", "")
+               and eff.id == best[0].id and c.p_adjusted < alpha and within_one_se(c)]
+        if own:
+            best = min(own, key=lambda ec: np.nanmean(ec[1].mse_blocks))
     if _time_varying(best[0]):
         # a change over time is accepted only if no measured column explains the same
         # residual: a dependence on a measured signal (few parameters, predicts new data)
@@ -461,30 +479,48 @@ def _score(c: _Channel, eff: Effect, bases: list[np.ndarray], before: np.ndarray
     rmse_a = c.rmse(after)
     p = paired_p(mse_b, mse_a)
     p_dm, _ = loss_differential_p(ctx.y - before, ctx.y - after)
-    return Candidate(effect=eff.id, label=eff.label, channel=c.name, n_params=eff.n_params,
+    return Candidate(effect=eff.id, label=eff.label, channel=carrier(eff, c.name),
+                     n_params=eff.n_params,
                      rmse_before=rmse_b, rmse_after=rmse_a,
                      gain_pct=100.0 * (1.0 - rmse_a / rmse_b), p_value=p, p_adjusted=p,
                      p_dm=p_dm, mse_blocks=mse_a), after
 
 
+def carrier(eff: Effect, channel: str) -> str:
+    """The signal an effect is an error of: the input sensor of a sensor error, else the
+    channel whose residual is analysed."""
+    return str(getattr(eff, "sensor", "") or channel)
+
+
 def _alternatives(c: _Channel, chain: list[Effect], scored: list[tuple[Candidate, np.ndarray]],
-                  choice: Candidate, by_label: dict[str, Effect]) -> list[dict[str, Any]]:
-    """Other effects the held-out data cannot tell apart from the choice (within one standard
-    error), with their own parameters fitted on every valid sample."""
-    alternatives = []
+                  choice: Candidate, by_label: dict[str, Effect], alpha: float = 0.05,
+                  max_ties: int = 8) -> list[dict[str, Any]]:
+    """Other explanations the held-out data cannot tell apart from the choice, with their own
+    parameters fitted on every valid sample: within one standard error of it, or significant
+    themselves and not significantly worse than it (one-sided Wilcoxon over the blocks, level
+    ``alpha``). One per effect and carrier (its best variant), best first."""
+    alternatives: list[dict[str, Any]] = []
     full_pred = None
-    for cand, _ in scored:
-        if cand.effect == choice.effect:
-            continue
+    seen = {(choice.effect, choice.channel)}
+    for cand, _ in sorted(scored, key=lambda ca: float(np.nanmean(ca[0].mse_blocks))):
+        if (cand.effect, cand.channel) in seen:
+            continue  # one alternative per effect and channel: its best variant
         d = cand.mse_blocks - choice.mse_blocks
         d = d[np.isfinite(d)]
-        if d.size >= 3 and d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size):
+        if d.size < 3 or len(alternatives) >= max_ties:
+            continue
+        if d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size) or (
+                cand.p_adjusted < alpha
+                and paired_p(cand.mse_blocks, choice.mse_blocks) >= alpha):
             if full_pred is None:
                 full_pred, _ = fit_chain(c.ctx, chain, c.ok)
             alt = by_label[cand.label]
-            alternatives.append({"effect": cand.effect, "label": cand.label,
-                                 "gain_pct": cand.gain_pct, "p_adjusted": cand.p_adjusted,
-                                 "params": alt.fit(c.ctx, full_pred, c.ok, refine=True)})
+            alt_d = {"effect": cand.effect, "label": cand.label, "channel": cand.channel,
+                     "gain_pct": cand.gain_pct, "p_adjusted": cand.p_adjusted,
+                     "params": alt.fit(c.ctx, full_pred, c.ok, refine=True)}
+            alt_d.update(tie_reason(choice, cand, c.name))
+            alternatives.append(alt_d)
+            seen.add((cand.effect, cand.channel))
     return alternatives
 
 
@@ -495,7 +531,8 @@ def _grow_chain(c: _Channel, cfg: DiscrepancyConfig, n_channels: int,
     """Add the significant effects of one channel, best first; returns the chain and the
     number of steps taken."""
     ctx = c.ctx
-    cands = candidates(ctx, effects=cfg.effects, onset=cfg.onset)
+    cands = candidates(ctx, effects=cfg.effects, onset=cfg.onset,
+                       sensor_effects=cfg.sensor_effects)
     by_label = {e.label: e for e in cands}
     chain: list[Effect] = []
     nit = 0
@@ -511,13 +548,21 @@ def _grow_chain(c: _Channel, cfg: DiscrepancyConfig, n_channels: int,
                   if (sc := _score(c, eff, bases, before, rmse_b, mse_b)) is not None]
         if not scored:
             break
-        m = len(scored) * n_channels
+        # Bonferroni over the effect shapes tested on the channel: an input sensor's error is
+        # one more carrier of a shape the channel's own candidates already test (its
+        # residual following the model's sensitivity to that sensor), a question of
+        # attribution among explanations rather than one more chance of a false discovery
+        m = max(1, sum(cand.channel == c.name for cand, _ in scored)) * n_channels
         scored = [(Candidate(**{**cand.__dict__, "p_adjusted": min(1.0, cand.p_value * m)}), a)
                   for cand, a in scored]
         if step == 0:
             table.extend(cand for cand, _ in scored)
-        eff, choice = _one_se_choice([(by_label[cand.label], cand) for cand, _ in scored],
-                                     cfg.alpha)
+        # the choice is made among the significant explanations when there are any (a
+        # better but unproven one is reported beside it as a tie)
+        pool = [(by_label[cand.label], cand) for cand, _ in scored
+                if cand.p_adjusted < cfg.alpha and cand.gain_pct >= cfg.min_gain_pct]
+        eff, choice = _one_se_choice(pool or [(by_label[cand.label], cand)
+                                              for cand, _ in scored], cfg.alpha)
         sig = choice.p_adjusted < cfg.alpha and choice.gain_pct >= cfg.min_gain_pct
         if progress:
             progress(f"{c.name} step {step + 1}: best {choice.label} gain "
@@ -525,11 +570,12 @@ def _grow_chain(c: _Channel, cfg: DiscrepancyConfig, n_channels: int,
                      f"{' (significant)' if sig else ''}")
         if not sig:
             break
-        alternatives = _alternatives(c, chain, scored, choice, by_label)
+        alternatives = _alternatives(c, chain, scored, choice, by_label, cfg.alpha)
         chain.append(eff)
         oof[f"after_{step + 1}"] = next(a for cand, a in scored if cand is choice)
         findings.append(Finding(rank=0, effect=choice.effect, label=choice.label,
-                                channel=c.name, params={}, rmse_before=choice.rmse_before,
+                                channel=choice.channel, model_channel=c.name, params={},
+                                rmse_before=choice.rmse_before,
                                 rmse_after=choice.rmse_after, gain_pct=choice.gain_pct,
                                 p_value=choice.p_value, p_adjusted=choice.p_adjusted,
                                 p_dm=choice.p_dm, significant=True,
@@ -539,6 +585,7 @@ def _grow_chain(c: _Channel, cfg: DiscrepancyConfig, n_channels: int,
 
 
 MIN_GAIN_EFFECT = 0.01  # relevance floor of a gain error: |gain - 1| [1]
+MIN_EFFECT_REL = 0.01  # relevance floor of any effect: RMS change / RMS level of the channel
 
 
 def _gain_magnitude(params: dict[str, Any]) -> float:
@@ -560,14 +607,26 @@ def _refit(c: _Channel, chain: list[Effect], findings: list[Finding], info: dict
     ctx.folds, ctx.fold_ids = None, {}
     fitted = list(zip(chain, params))
     for f_i, f in enumerate(findings):
-        if f.channel == c.name and not f.params:
+        if f.model_channel == c.name and not f.params:
             findings[f_i] = Finding(**{**f.__dict__, "params": params[f.step - 1]})
     # A gain error below the relevance floor (every piece within MIN_GAIN_EFFECT of 1, the
     # order of a sensor's own accuracy class) is a real but negligible wander of the model,
     # not a deficiency worth naming: it stays in the candidate table, not among the findings.
+    # Any other effect is held to the same floor by its size: the RMS change it makes to the
+    # prediction must reach MIN_EFFECT_REL of the channel's RMS level (a sensor's accuracy
+    # class, 1 % of reading); smaller effects are real but negligible wanders of the model.
+    level = float(np.sqrt(np.mean(ctx.y[c.ok] ** 2)))
+    pred, size = ctx.yhat, []
+    for eff, p in fitted:
+        nxt = eff.apply(ctx, pred, p)
+        d = (nxt - pred)[c.ok]
+        size.append(float(np.sqrt(np.nanmean(d ** 2))) if d.size else 0.0)
+        pred = nxt
     findings[:] = [f for f in findings
-                   if not (f.channel == c.name and f.effect == "gain_error"
-                           and _gain_magnitude(f.params) < MIN_GAIN_EFFECT)]
+                   if not (f.model_channel == c.name
+                           and ((f.effect == "gain_error"
+                                 and _gain_magnitude(f.params) < MIN_GAIN_EFFECT)
+                                or size[f.step - 1] < MIN_EFFECT_REL * level))]
     final = apply_chain(ctx, fitted)
     info["rmse_extended_in_sample"] = float(np.sqrt(np.mean((ctx.y - final)[c.ok] ** 2)))
     return fitted

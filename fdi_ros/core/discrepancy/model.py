@@ -36,9 +36,9 @@ BASELINES: Kinds[Any] = Kinds("baseline model",
                               {"speed_density": "fdi_ros.core.meanvalue:SpeedDensityModel"})
 
 
-def baseline_from_dict(d: dict):
+def baseline_from_dict(d: dict[str, Any]) -> Any:
     """Rebuild a baseline model saved with its ``to_dict()``."""
-    return BASELINES.get(d.get("type")).from_dict(d)
+    return BASELINES.get(str(d.get("type"))).from_dict(d)
 
 
 @dataclass(frozen=True)
@@ -46,7 +46,7 @@ class ExtendedModel:
     """Baseline model + the effect chains of the findings (fitted parameters included)."""
 
     baseline: Any
-    chains: dict[str, list[tuple[Effect, dict]]]
+    chains: dict[str, list[tuple[Effect, dict[str, Any]]]]
     source: str = ""
 
     @property
@@ -58,16 +58,16 @@ class ExtendedModel:
         return tuple(self.baseline.channels)
 
     @property
-    def leaks(self):
+    def leaks(self) -> tuple[Any, ...]:
         return getattr(self.baseline, "leaks", ())
 
-    def region(self, data: Measured):
-        return self.baseline.region(data)
+    def region(self, data: Measured) -> dict[str, np.ndarray]:
+        return dict(self.baseline.region(data))
 
     def predict(self, data: Measured) -> dict[str, np.ndarray]:
         """Baseline prediction with every fitted extension applied, per channel."""
         base = self.baseline
-        if data.alpha is None and getattr(base, "orders", ()):
+        if data.alpha is None and bool(getattr(base, "orders", None)):
             # mean-value data (segment means): the pulsation terms average out
             base = base.without_pulsation()
         ctxs = build_contexts(data, base)
@@ -81,10 +81,10 @@ class ExtendedModel:
             out[ch] = pred
         return out
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         from fdi_ros.core.discrepancy.engine import _jsonable
 
-        return _jsonable({
+        out: dict[str, Any] = _jsonable({
             "format": FORMAT,
             "type": "discrepancy_extended",
             "source": self.source,
@@ -92,6 +92,7 @@ class ExtendedModel:
             "extensions": {ch: [{"spec": e.to_dict(), "params": p} for e, p in chain]
                            for ch, chain in self.chains.items()},
         })
+        return out
 
     def save(self, path: str | Path) -> Path:
         path = Path(path)
@@ -100,12 +101,12 @@ class ExtendedModel:
         return path
 
     @classmethod
-    def from_dict(cls, d: dict) -> ExtendedModel:
+    def from_dict(cls, d: dict[str, Any]) -> ExtendedModel:
         if d.get("format") != FORMAT:
             raise ValueError(f"not an extended model file (format {d.get('format')!r}, "
                              f"expected {FORMAT!r})")
 
-        def params(p: dict) -> dict:
+        def params(p: dict[str, Any]) -> dict[str, Any]:
             out = dict(p)
             if "region" in out:  # JSON has no infinity: restore open box edges
                 out["region"] = {k: [float(v) for v in lohi] for k, lohi in

@@ -90,9 +90,13 @@ def runner_up(result: DiscrepancyResult):
     if not result.findings:
         return None
     top = result.findings[0]
-    same = [c for c in result.candidates if c.channel == top.channel]
-    first = next((c for c in same if c.label == top.label), None)
-    second = next((c for c in same if c.effect != top.effect), None)
+    first = next((c for c in result.candidates if c.label == top.label
+                  and c.channel == top.channel), None)
+    if first is None:
+        return None
+    same = [c for c in result.candidates if c.mse_blocks.size == first.mse_blocks.size]
+    second = next((c for c in same if (c.effect, c.channel) != (top.effect, top.channel)),
+                  None)
     if first is None or second is None or first.mse_blocks.size != second.mse_blocks.size:
         return None
     return first, second

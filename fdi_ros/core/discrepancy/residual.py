@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections import deque
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -80,7 +81,8 @@ class ExtendedResidualModel:
                               norm=float(np.linalg.norm(v)))
 
 
-def make_residual_model(spec: dict, *, base_dir: Path, model_id: str) -> ExtendedResidualModel:
+def make_residual_model(spec: dict[str, Any], *, base_dir: Path,
+                        model_id: str) -> ExtendedResidualModel:
     """The bank model of kind ``discrepancy_extended`` (registered by
     :data:`fdi_ros.core.residual_models.KINDS`)."""
     unknown = set(spec) - {"path", "history_s"}

@@ -4,7 +4,8 @@ A model with one residual per channel cannot always say which sensor is wrong: i
 speed-density model the predicted air flow is nearly proportional to the manifold pressure, so
 a reading of the pressure sensor scaled by k looks like the flow sensor scaled by about 1/k.
 For a gain-error finding on channel c, every input sensor s of the model is re-scaled (after
-the finding's onset) by the factor k that fits the data best, the model is re-run, and the two
+the finding's onset) by the factor k that fits the data best (reported as the sensor's gain
+1/k), the model is re-run, and the two
 explanations are compared on contiguous 5 s blocks after the onset (two-sided Wilcoxon
 signed-rank test on the blockwise MSE differences). When they cannot be told apart, the input
 gain is reported as a tie, with its fitted factor, why the data cannot separate them and
@@ -12,6 +13,9 @@ which measurement would.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from scipy import stats
@@ -62,10 +66,10 @@ def _block_mse(e2: np.ndarray, t: np.ndarray, block_s: float) -> np.ndarray:
     return (s / np.maximum(c, 1))[c >= 10]
 
 
-def input_gain_ties(data: Measured, model, channel: str, gain: float, onset_s: float | None,
+def input_gain_ties(data: Measured, model: Any, channel: str, gain: float, onset_s: float | None,
                     *, alpha: float = 0.05, block_s: float = 5.0,
                     bounds: tuple[float, float] = (0.6, 1.6),
-                    max_samples: int = 40_000) -> list[dict]:
+                    max_samples: int = 40_000) -> list[dict[str, Any]]:
     """Input-sensor gains that explain the data as well as ``gain`` on ``channel``.
 
     Long records are judged on ``max_samples`` samples in contiguous windows spread over
@@ -91,10 +95,12 @@ def input_gain_ties(data: Measured, model, channel: str, gain: float, onset_s: f
         if not np.isfinite(x).any() or np.nanstd(x[after]) == 0:
             continue
 
-        def resid(k: float, name=name) -> np.ndarray:
-            return y - np.asarray(model.predict(_scaled(data, name, k, after))[channel], float)
+        def resid(k: float, name: str = name) -> np.ndarray:
+            e: np.ndarray = y - np.asarray(model.predict(_scaled(data, name, k, after))[channel],
+                                           float)
+            return e
 
-        def cost(k: float, resid=resid) -> float:
+        def cost(k: float, resid: Callable[[float], np.ndarray] = resid) -> float:
             e = resid(k)[after]
             e = e[np.isfinite(e)]
             # samples the scaled input pushes outside the model's region count as misses
@@ -130,12 +136,14 @@ def input_gain_ties(data: Measured, model, channel: str, gain: float, onset_s: f
         better = p < alpha and float(np.median(d)) < 0
         out.append({
             "effect": "gain_error", "label": f"gain error on {name}", "channel": name,
-            "params": {"gain": k, "onset_s": onset_s},
+            # the sensor's own gain (its reading / the truth): the model is fed reading / gain
+            "params": {"gain": 1.0 / k, "onset_s": onset_s},
             "rmse_after_onset": {channel: r_ch, name: r_in},
             "p_distinguish": p,
             "fits_better": better,
             "gain_pct": float("nan"),
             "why": (f"the model predicts {channel} from {name}; scaling {name} by {k:.3f} "
+                    f"(a {name} sensor gain of {1.0 / k:.3f}) "
                     f"moves the prediction as a gain {gain:.3f} on {channel} moves the "
                     f"measurement (RMSE after the onset {r_in:.4g} vs {r_ch:.4g}, blockwise "
                     f"test p = {p:.2g}"
@@ -147,3 +155,31 @@ def input_gain_ties(data: Measured, model, channel: str, gain: float, onset_s: f
                             f"flow relation across another component that uses {name})"),
         })
     return out
+
+
+def tie_reason(choice: Any, other: Any, model_channel: str) -> dict[str, str]:
+    """Why two candidates (``choice``, ``other``: objects with ``effect``, ``label`` and
+    ``channel``) explain ``model_channel``'s residual alike, and which measurement would tell
+    them apart."""
+    a, b = choice.channel, other.channel
+    lag_pair = {choice.effect, other.effect} == {"sensor_lag", "dead_time"}
+    if a != b:
+        sensors = [s for s in (a, b) if s != model_channel]
+        why = (f"{other.label} ({b}) moves the {model_channel} residual as {choice.label} "
+               f"({a}) does: the model predicts {model_channel} from "
+               f"{' and '.join(sensors)}, and one residual cannot prove which signal is "
+               "wrong (held-out error within one standard error)")
+        sep = (f"a second relation that uses {a} but not {b}, or {b} but not {a} (a redundant "
+               f"sensor, or a model of another component that reads one of them)")
+    elif lag_pair:
+        why = (f"on {a} a first-order lag tau and a dead time d = tau both make a slowly "
+               "varying reading trail the truth by about tau dx/dt; they differ only in "
+               "faster content")
+        sep = (f"the crank-angle pulsation of {a} (a lag damps it, a dead time shifts its "
+               "phase in proportion to speed) or steeper transients")
+    else:
+        why = (f"{other.label} and {choice.label} fit the held-out blocks within one standard "
+               "error of each other")
+        sep = ("data that excite the two differently: a wider operating range, other "
+               "transients, or a measured column that follows one of them")
+    return {"why": why, "separate_by": sep}

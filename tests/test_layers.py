@@ -1,5 +1,6 @@
 """Module layering of fdi_ros, read from the source (every import statement, function-level
-ones included, and every module named in a string to be imported by name): no import cycles; the core imports no plant wing, node, command or rclpy; no
+ones included, and every module named in a string to be imported by name): no import cycles;
+the core imports no plant wing, node, command or rclpy, not even through other modules; no
 plant is named in code (identifiers or strings, any case) outside the wings and the commands;
 every node file is thin (at most 150 lines)."""
 

@@ -32,6 +32,8 @@ setup(
     python_requires=">=3.10",
     install_requires=["numpy", "scipy", "pyyaml", "rosbags", "mcap", "mcap-ros2-support",
                       "matplotlib", "tqdm", "psutil"],
+    # `fdi-ros diagnose BAG... --engine dask / --cluster ADDRESS` (pinned in constraints.txt)
+    extras_require={"dask": ["dask", "distributed"]},
     zip_safe=True,
     maintainer="fdi_ros maintainers",
     maintainer_email="maintainers@fdi-ros.dev",

@@ -194,6 +194,9 @@ def _open_reader(path: str | Path) -> Any:
 
 def topics(path: str | Path) -> dict[str, tuple[str, int]]:
     """Topic -> (message type, message count) of a bag."""
+    fast = _fast_topics(path)
+    if fast is not None:
+        return fast
     reader = _open_reader(path)
     try:
         out: dict[str, tuple[str, int]] = {}
@@ -237,7 +240,144 @@ def read(path: str | Path, topics: Iterable[str] | None = None,
 
 
 def read_blocks(path: str | Path, topic: str = "/fdi/sensor_block") -> list[SampleBlock]:
+    """The sample blocks of a bag. Little-endian CDR is decoded straight into arrays (no
+    message objects); anything else, or a damaged bag, goes the general way (and its errors)."""
+    fast = _fast(path, topic, msgs.TOPICS["/fdi/sensor_block"], _sensor_block_cdr)
+    if fast is not None:
+        return fast
     return [msgs.to_sample_block(m) for _, _, _, m in read(path, [topic])]
+
+
+def _mcap_file(path: str | Path) -> Path | None:
+    p = Path(path)
+    files = sorted(p.glob("*.mcap")) if p.is_dir() and (p / "metadata.yaml").is_file() else []
+    return files[0] if len(files) == 1 else None
+
+
+def _fast(path: str | Path, topic: str, msgtype: str, decode: Any) -> list | None:
+    """Messages of one topic read with mcap and decoded by ``decode`` (CDR bytes -> record);
+    None when that does not apply (the general reader then decides and names any damage)."""
+    from mcap.reader import make_reader
+
+    f = _mcap_file(path)
+    if f is None:
+        return None
+    try:
+        with f.open("rb") as fh:
+            found = [(m.log_time, m.data) for sc, _ch, m in
+                     make_reader(fh).iter_messages(topics=[topic], log_time_order=False)
+                     if sc is not None and sc.name == msgtype]
+        found.sort(key=lambda x: x[0])   # log-time order, as the general reader gives
+        return [decode(_Cdr(data)) for _, data in found]
+    except Exception:
+        return None
+
+
+def _fast_topics(path: str | Path) -> dict[str, tuple[str, int]] | None:
+    """Topic -> (type, count) from the MCAP summary; None without one (a cut-short file)."""
+    from mcap.reader import make_reader
+
+    f = _mcap_file(path)
+    if f is None:
+        return None
+    try:
+        with f.open("rb") as fh:
+            summary = make_reader(fh).get_summary()
+        if summary is None or summary.statistics is None:
+            return None
+        counts = summary.statistics.channel_message_counts
+        out: dict[str, tuple[str, int]] = {}
+        for c in summary.channels.values():
+            typ, n = out.get(c.topic, (summary.schemas[c.schema_id].name, 0))
+            out[c.topic] = (typ, n + counts.get(c.id, 0))
+        return out
+    except Exception:
+        return None
+
+
+class _Cdr:
+    """A cursor over little-endian CDR (XCDR1, alignment counted from byte 4)."""
+
+    def __init__(self, data: bytes) -> None:
+        if data[:2] != b"\x00\x01":
+            raise ValueError("not little-endian CDR")
+        self.data, self.off = data, 4
+
+    def _at(self, n: int) -> int:
+        self.off += (-(self.off - 4)) % n
+        o = self.off
+        if o + n > len(self.data):
+            raise ValueError("CDR message ends early")
+        self.off += n
+        return o
+
+    def scalar(self, fmt: str) -> Any:
+        import struct
+
+        return struct.unpack_from("<" + fmt, self.data, self._at(struct.calcsize(fmt)))[0]
+
+    def string(self) -> str:
+        n = self.scalar("I")
+        o = self.off
+        if n < 1 or o + n > len(self.data) or self.data[o + n - 1] != 0:
+            raise ValueError("malformed CDR string")
+        self.off += n
+        return bytes(self.data[o:o + n - 1]).decode()
+
+    def strings(self) -> tuple[str, ...]:
+        return tuple(self.string() for _ in range(self.scalar("I")))
+
+    def f64s(self) -> Any:
+        import numpy as np
+
+        n = self.scalar("I")
+        if n == 0:
+            return np.zeros(0)
+        o = self._at(8)
+        if o + 8 * n > len(self.data):
+            raise ValueError("CDR array past the end")
+        self.off = o + 8 * n
+        return np.frombuffer(self.data, "<f8", n, o)
+
+    def header(self) -> None:
+        self.scalar("i"), self.scalar("I"), self.string()
+
+    def done(self) -> None:
+        if len(self.data) - self.off > 7:
+            raise ValueError("CDR message longer than its type")
+
+
+_NAMES_SEEN: dict[str, tuple[bytes, tuple[tuple[str, ...], tuple[str, ...]]]] = {}
+
+
+def _sensor_block_cdr(c: _Cdr) -> SampleBlock:
+    c.header()
+    plant, index = c.string(), int(c.scalar("Q"))
+    t, alpha = c.f64s(), c.f64s()
+    # channel and unit names repeat from block to block: decoded once per stream
+    o, last = c.off, _NAMES_SEEN.get("block")
+    if last is not None and c.data[o:o + len(last[0])] == last[0]:
+        channels, units = last[1]
+        c.off += len(last[0])
+    else:
+        channels, units = c.strings(), c.strings()
+        _NAMES_SEEN["block"] = (bytes(c.data[o:c.off]), (channels, units))
+    values = c.f64s()
+    c.done()
+    if values.size != len(channels) * t.size:
+        raise ValueError("SensorBlock does not add up")
+    return SampleBlock(plant=plant, index=index, t=t, alpha=alpha, channels=channels,
+                       units=units, values=values.reshape(len(channels), t.size))
+
+
+def _fault_event_cdr(c: _Cdr) -> FaultEvent:
+    c.header()
+    t, fault, size, unit, profile = c.scalar("d"), c.string(), c.scalar("d"), c.string(), \
+        c.string()
+    ramp, active = c.scalar("d"), bool(c.scalar("B"))
+    c.done()
+    return FaultEvent(t=t, fault=fault, size=size, size_unit=unit, profile=profile or "step",
+                      ramp_s=ramp, active=active)
 
 
 def read_features(path: str | Path, topic: str = "/fdi/features") -> list[FeatureVector]:
@@ -253,6 +393,9 @@ def read_diagnoses(path: str | Path, topic: str = "/fdi/diagnosis") -> list[Diag
 
 
 def read_faults(path: str | Path, topic: str = "/fdi/fault_truth") -> list[FaultEvent]:
+    fast = _fast(path, topic, msgs.TOPICS["/fdi/fault_truth"], _fault_event_cdr)
+    if fast is not None:
+        return fast
     return [msgs.to_fault_event(m) for _, _, _, m in read(path, [topic])]
 
 

@@ -21,11 +21,12 @@ stamp_set() { echo "$2" > "$BUILD/$1.stamp"; }
 
 t0=$(date +%s)
 # 1. venv and pinned wheels ------------------------------------------------------------------
-h_deps=$(hash_of "$ROOT/requirements.txt" "$ROOT/constraints.txt")
+h_deps=$(hash_of "$ROOT/requirements.txt" "$ROOT/requirements-extras.txt" "$ROOT/constraints.txt")
 if ! stamp_ok deps "$h_deps" || [ ! -x "$VENV/bin/python" ]; then
   echo "[setup] creating venv and installing pinned dependencies"
   [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
   "$VENV/bin/python" -m pip install -q --disable-pip-version-check -r "$ROOT/requirements.txt" \
+      -r "$ROOT/requirements-extras.txt" \
       -c "$ROOT/constraints.txt"
   # Pitfall 1 (ROS_ENV.md): the wheels' CMake exports carry the build machine's paths.
   "$VENV/bin/python" "$ROOT/scripts/fix_cmake_prefix.py" "$VENV"

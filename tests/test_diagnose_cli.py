@@ -26,6 +26,10 @@ def test_sample_bag_diagnosed(diesel_bank):
     assert out["isolation_delay_s"] < 2.0
     assert out["cleared_detections_s"] == []
     assert out["realtime_factor"] > 1.0
+    assert 0 < out["valid_segments"] <= out["segments"]
+    assert out["coverage"] == round(out["valid_segments"] / out["segments"], 4)
+    assert sum(out["not_valid_reasons"].values()) <= out["segments"] - out["valid_segments"]
+    assert all("#" in k or not any(c.isdigit() for c in k) for k in out["not_valid_reasons"])
 
 
 def test_bad_bags_clear_errors(tmp_path: Path):

@@ -30,20 +30,20 @@ def baseline():
 def test_random_cases_found_and_nulls_clean(baseline):
     seed = secrets.randbelow(2**31)
     print(f"selftest seed {seed}")
-    # Hidden effects only: null cases still give false discoveries on some random windows
-    # (a crank-fundamental or a slow gain wander of the baseline model itself; measured and
-    # open), so a random null here would make the test fail by chance, not by a regression.
-    out = run_selftest(5, seed, n_null=0, baseline=baseline)
+    # five hidden effects and one null case (the relevance floor keeps the baseline's own
+    # small wanders, real but below 1 % of reading, from being named)
+    out = run_selftest(5, seed, n_null=1, baseline=baseline)
     why = f"seed {seed}: misses {out['misses']}"
     # at most one miss in five (the acceptance run of 60 + 10 is reported in the docs); a
     # reported tie that contains the truth (e.g. a lag or a dead time of an input sensor,
     # which nothing the model predicts separates) is not a miss
-    assert out["n_cases"] == 5 and out["n_nulls"] == 0
+    assert out["n_cases"] == 5 and out["n_nulls"] == 1
     assert out["top1_or_tie"] >= 0.8, why
+    assert out["false_discoveries"] == 0, f"seed {seed}: {out['cases']}"
     pe = out["parameter_rel_error"]
     assert pe["within_tolerance"] >= pe["of"] - 1, why
     rows = out["confusion"]["rows"]
-    assert sum(sum(r.values()) for r in rows.values()) == 5
+    assert sum(sum(r.values()) for r in rows.values()) == 6
 
 
 def test_draw_is_log_uniform_within_the_stated_ranges():

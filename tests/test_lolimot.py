@@ -154,3 +154,27 @@ def test_coverage_closing_fills_holes_but_keeps_the_outline():
     g[4, 2] = False          # a one-bin hole between sweeps
     c = _closing(g)
     assert c[4, 2] and not c[:2, 4:].any() and c[:3, 3:].sum() <= 1
+
+
+@pytest.mark.parametrize("p, compress, with_val", [(2, 0, True), (3, 16, False), (1, 0, False)])
+def test_fast_splits_equal_the_reference(p, compress, with_val, monkeypatch):
+    """Candidate splits that reuse the untouched cells' validities and the data's regressor
+    products grow exactly the tree of the reference, which recomputes everything."""
+    rng_seed = int(np.random.SeedSequence().entropy % 10_000)
+    rng = np.random.default_rng(rng_seed)
+    X = rng.uniform(-1.0, 2.0, size=(1500, p))
+    y = np.sin(2.5 * X[:, 0]) + (X[:, -1] > 0.7) * X[:, -1] + 0.05 * rng.standard_normal(1500)
+    kw = dict(max_models=int(rng.integers(4, 14)), k_sigma=float(rng.uniform(0.3, 0.5)),
+              compress_bins=compress, patience=3)
+    Xv, yv = (X[:300], y[:300]) if with_val else (None, None)
+    fits = {}
+    for fast in (True, False):
+        monkeypatch.setattr(Lolimot, "_fast_splits", fast)
+        m = Lolimot(**kw)
+        fits[fast] = (m, m.fit(X[300:], y[300:], X_val=Xv, y_val=yv))
+    (a, ra), (b, rb) = fits[True], fits[False]
+    assert ra.splits == rb.splits and ra.n_models == rb.n_models, f"seed {rng_seed}"
+    np.testing.assert_array_equal(ra.loss, rb.loss)
+    for u, v in zip(a.to_arrays().values(), b.to_arrays().values()):
+        np.testing.assert_array_equal(u, v)
+    np.testing.assert_array_equal(a.predict(X[:50]), b.predict(X[:50]))

@@ -47,6 +47,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-hypotheses", action="store_true",
                         help="skip the fault-hypothesis comparison")
     parser.add_argument("--figures", default=None, help="directory for residual figures")
+    parser.add_argument("--no-realistic-drive", action="store_true",
+                        help="skip the realistic drive (coverage per region, false symptoms, "
+                             "each fault opened at a random time)")
+    parser.add_argument("--config", default="config/diesel.yaml",
+                        help="graph configuration whose bank diagnoses the realistic drive")
     parser.add_argument("--json", action="store_true", help="print JSON")
     parser.add_argument("--no-progress", action="store_true")
 
@@ -229,6 +234,13 @@ def run(args: argparse.Namespace) -> int:
         _write_plant_table(args.write_table, runs)
     if args.figures:
         report["figures"] = [str(fault_figure(traces, scfg, args.figures))]
+    if not args.no_realistic_drive:
+        from fdi_ros.plants import ensure_bank
+        from fdi_ros.plants.diesel.coverage import realistic_drive
+
+        ensure_bank(args.config, progress=progress)
+        report["realistic_drive"] = realistic_drive(args.config, progress=progress,
+                                                    figures=args.figures)
     if not args.no_hypotheses:
         report["hypotheses"] = compare_hypotheses(mset, scfg, args.models, seed=args.seed,
                                                   progress=progress)
@@ -243,6 +255,16 @@ def run(args: argparse.Namespace) -> int:
             print(f"{r['fault']:22s} {r['size']:5.1f}  produced {r['signature']:10s} paper "
                   f"{r['paper_signature']:10s} detected={r['detected']} delay="
                   f"{r['delay_s']} s / {r['delay_segments']} seg  isolated={r['isolated']}")
+        if "realistic_drive" in report:
+            rd = report["realistic_drive"]
+            print(f"realistic drive: {rd['minutes']} min, {rd['coverage']:.1%} of segments "
+                  f"diagnosed (valid), false symptom segments {rd['false_symptom_segments']}; "
+                  "per region " + ", ".join(f"{k} {v['coverage']:.1%}"
+                                            for k, v in rd["regions"].items()))
+            for r in rd["faults"]:
+                print(f"  {r['fault']:22s} onset {r['onset_drive_s']:7.1f} s detected="
+                      f"{r['detected']} after {r['delay_valid_segments']} valid segments, "
+                      f"isolated {r['isolated']}")
         if "hypotheses" in report:
             print("hypotheses:", json.dumps(report["hypotheses"]["verdict"]))
     del np

@@ -50,6 +50,7 @@ strictly increasing (unsorted, duplicates) and decreasing times raise ``ValueErr
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -506,3 +507,20 @@ def segment_features(block: SampleBlock, *, segment_deg: float, V_D: float, R: f
     """Feature vectors of all complete segments of one block (see the module docstring)."""
     return segment_table(block, segment_deg=segment_deg, V_D=V_D, R=R,
                          n_harmonics=n_harmonics, max_gap_deg=max_gap_deg).to_features()
+
+
+def join_blocks(blocks: Sequence[SampleBlock]) -> SampleBlock:
+    """Consecutive sample blocks of one stream as one block (offline segmentation in one pass).
+
+    The blocks must share plant, channels and units; the result carries the first index."""
+    if not blocks:
+        raise ValueError("no sample blocks to join")
+    b0 = blocks[0]
+    for b in blocks[1:]:
+        if (b.plant, b.channels, b.units) != (b0.plant, b0.channels, b0.units):
+            raise ValueError(f"block {b.index}: channels or units differ from block {b0.index}")
+    return SampleBlock(plant=b0.plant, index=b0.index,
+                       t=np.concatenate([b.t for b in blocks]),
+                       alpha=np.concatenate([b.alpha for b in blocks]),
+                       channels=b0.channels, units=b0.units,
+                       values=np.concatenate([b.values for b in blocks], axis=1))

@@ -72,6 +72,7 @@ class Diagnoser:
         sym = cfg.symptoms or {}
         self.max_mismatch = int(sym.get("max_mismatch", 1))
         self.explain_norm = float(sym.get("explain_norm", math.inf))
+        self._candidates: dict[tuple[int, ...], tuple[str, ...]] = {}
 
     @property
     def models_online(self) -> tuple[str, ...]:
@@ -111,8 +112,12 @@ class Diagnoser:
                 observed = symptoms.in_order(cols) if cols else tuple(symptoms.levels)
                 # The faults the symptoms do not contradict: a fault outside this list
                 # cannot explain the residuals, however small its model's residual.
-                candidates = tuple(isolate(observed, self.table, max_mismatch=self.max_mismatch,
-                                           opposite="exclude", keep="all"))
+                cached = self._candidates.get(observed)
+                if cached is None:   # a pure function of the pattern: once per pattern
+                    cached = self._candidates[observed] = tuple(isolate(
+                        observed, self.table, max_mismatch=self.max_mismatch,
+                        opposite="exclude", keep="all"))
+                candidates = cached
             if not self.supervisor.isolated:
                 if not active:
                     # No symptom: the reference model explains the data by definition; the
@@ -169,12 +174,16 @@ class Diagnoser:
 
 
 def diagnose_offline(cfg: GraphConfig, features: Iterable[FeatureVector], *,
-                     models: Mapping[str, ResidualModel] | None = None, progress: bool = False
+                     models: Mapping[str, ResidualModel] | None = None, progress: bool = False,
+                     batch: bool = True
                      ) -> list[tuple[FeatureVector, dict[str, ResidualVector], Step]]:
     """Run the whole bank and the diagnoser over feature vectors (no ROS, many x real time).
 
     Only the models on line at each step are evaluated, as in the live graph; a model taken on
     line after an isolation is reset first, as the live residual node is on activation.
+    ``batch``: models that offer ``batch(features, shared)`` compute the stream run by run
+    with array operations (same results); ``batch=False`` asks every model segment by
+    segment, as the live graph does (the reference path of the tests).
     """
     if models is None:
         models = {e.id: load_residual_model(cfg.resolve_spec(e.model), model_id=e.id)
@@ -182,15 +191,38 @@ def diagnose_offline(cfg: GraphConfig, features: Iterable[FeatureVector], *,
     diag = Diagnoser(cfg)
     out = []
     feats = list(features)
+    ref_id = diag.reference_id if diag.symptom_gen is not None else ""
+    ref_rvs: list[ResidualVector] = []
+    symptoms: list[SymptomState] = []
+    if batch:
+        shared: dict[str, object] = {}
+        wrapped: dict[str, ResidualModel] = {}
+        for mid, m in models.items():
+            hook = getattr(m, "batch", None)
+            wrapped[mid] = hook(feats, shared) if callable(hook) else m
+        models = wrapped
+        gen = diag.symptom_gen
+        if ref_id in models and gen is not None:
+            # The reference model is always on line (never reset): its residuals and the
+            # symptoms of the whole stream first, the bank and the supervisor step by step.
+            ref_rvs = [models[ref_id].residuals(fv) for fv in feats]
+            symptoms = gen.run(ref_rvs)
     it: Iterable[FeatureVector] = feats
     if progress:
         from tqdm import tqdm
 
         it = tqdm(feats, desc="diagnose", unit="seg")
-    for fv in it:
-        res = {mid: models[mid].residuals(fv) for mid in diag.models_online}
-        step = diag.update(fv.index, fv.t_end, res)
+    for k, fv in enumerate(it):
+        if symptoms:
+            res = {mid: ref_rvs[k] if mid == ref_id else models[mid].residuals(fv)
+                   for mid in diag.models_online}
+            step = diag.update(fv.index, fv.t_end, res, symptoms=symptoms[k])
+        else:
+            res = {mid: models[mid].residuals(fv) for mid in diag.models_online}
+            step = diag.update(fv.index, fv.t_end, res)
         for mid in step.added:
+            if symptoms and mid == ref_id:
+                raise RuntimeError("the reference model went off line in an offline run")
             reset = getattr(models[mid], "reset", None)
             if callable(reset):
                 reset()

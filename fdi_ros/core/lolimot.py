@@ -25,12 +25,18 @@ The fitted tree is inspectable (:attr:`Lolimot.centres`, :attr:`Lolimot.cell_bou
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 __all__ = ["Lolimot", "LolimotResult"]
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
 
 # Inputs beyond this many dimensions get no coverage grid (bins**p cells would be too many).
 _MAX_GRID_CELLS = 1_000_000
@@ -66,35 +72,65 @@ class LolimotResult:
     splits: tuple[tuple[int, int], ...] = field(default=())
 
 
-def _as_2d(X, n_inputs: int | None = None) -> np.ndarray:
-    X = np.asarray(X, dtype=float)
-    if X.ndim == 1:
-        X = X[:, None] if n_inputs in (None, 1) else X[None, :]
-    if X.ndim != 2:
-        raise ValueError(f"X must be 2-D (samples, inputs), got shape {X.shape}")
-    if n_inputs is not None and X.shape[1] != n_inputs:
-        raise ValueError(f"X has {X.shape[1]} inputs, the model has {n_inputs}")
-    return X
+def _as_2d(X: ArrayLike, n_inputs: int | None = None) -> FloatArray:
+    A: FloatArray = np.asarray(X, dtype=float)
+    if A.ndim == 1:
+        A = A[:, None] if n_inputs in (None, 1) else A[None, :]
+    if A.ndim != 2:
+        raise ValueError(f"X must be 2-D (samples, inputs), got shape {A.shape}")
+    if n_inputs is not None and A.shape[1] != n_inputs:
+        raise ValueError(f"X has {A.shape[1]} inputs, the model has {n_inputs}")
+    return A
 
 
-def _shifted(grid: np.ndarray, fill: bool) -> list[np.ndarray]:
+def _shifted(grid: BoolArray, fill: bool) -> list[BoolArray]:
     """The grid shifted by one bin along every axis and both directions (edges filled)."""
     out = []
     for ax in range(grid.ndim):
         for step in (1, -1):
             g = np.roll(grid, step, axis=ax)
-            edge = [slice(None)] * grid.ndim
+            edge: list[int | slice] = [slice(None)] * grid.ndim
             edge[ax] = 0 if step == 1 else -1
             g[tuple(edge)] = fill
             out.append(g)
     return out
 
 
-def _closing(grid: np.ndarray) -> np.ndarray:
+def _closing(grid: BoolArray) -> BoolArray:
     """Morphological closing (dilate, then erode) with the axis neighbours: fills one-bin
     holes between the sweeps of an identification cycle without growing its outline."""
     dil = grid | np.logical_or.reduce(_shifted(grid, False))
-    return dil & np.logical_and.reduce(_shifted(dil, True)) | grid
+    closed: BoolArray = dil & np.logical_and.reduce(_shifted(dil, True)) | grid
+    return closed
+
+
+class _Fitted(NamedTuple):
+    """The fitted state, in scaled coordinates ``z = (x - x_min) / x_scale``."""
+
+    x_min: FloatArray
+    x_scale: FloatArray
+    lo: FloatArray        # (M, p) cell lower bounds
+    hi: FloatArray        # (M, p) cell upper bounds
+    theta: FloatArray     # (M, p + 1) [intercept, slopes] in z
+    coverage: BoolArray
+
+
+def _log_mu(Z: FloatArray, lo: FloatArray, hi: FloatArray, k_sigma: float) -> FloatArray:
+    """Unnormalised log validity of every cell, (N, M): -1/2 sum_d ((z_d - c_d) / sigma_d)^2.
+    Each column depends on its own cell only (a split recomputes two columns)."""
+    centre = 0.5 * (lo + hi)
+    sigma = k_sigma * (hi - lo)
+    q = ((Z[:, None, :] - centre[None]) / sigma[None]) ** 2
+    out: FloatArray = -0.5 * q.sum(axis=2)
+    return out
+
+
+def _normalised(logmu: FloatArray) -> FloatArray:
+    """Phi (N, M) from the log validities; subtracting the row maximum keeps far points finite."""
+    logmu = logmu - logmu.max(axis=1, keepdims=True)
+    mu = np.exp(logmu)
+    phi: FloatArray = mu / mu.sum(axis=1, keepdims=True)
+    return phi
 
 
 class Lolimot:
@@ -117,6 +153,10 @@ class Lolimot:
         this shrinks the problem by one or two orders of magnitude at a negligible loss (the
         within-bin spread of x is 1/B of the range).
     """
+
+    # Candidate splits reuse the log validity of the cells they do not touch and the regressor
+    # products of the data (same numbers); False: the reference that recomputes everything.
+    _fast_splits = True
 
     def __init__(self, *, max_models: int = 20, k_sigma: float = 0.35, ridge: float = 1e-6,
                  min_samples_per_model: int = 10, patience: int = 4, coverage_bins: int = 16,
@@ -143,18 +183,13 @@ class Lolimot:
         self.patience = int(patience)
         self.coverage_bins = int(coverage_bins)
         self.coverage_min_count = int(coverage_min_count)
-        # Fitted state (scaled coordinates z = (x - x_min) / x_scale).
-        self._x_min: np.ndarray | None = None
-        self._x_scale: np.ndarray | None = None
-        self._lo: np.ndarray | None = None      # (M, p) cell lower bounds, scaled
-        self._hi: np.ndarray | None = None      # (M, p) cell upper bounds, scaled
-        self._theta: np.ndarray | None = None   # (M, p + 1) [intercept, slopes] in z
-        self._coverage: np.ndarray | None = None
+        self._state: _Fitted | None = None
         self.input_names: tuple[str, ...] = ()
         self.output_name: str = "y"
 
     # ------------------------------------------------------------------ fitting
-    def fit(self, X, y, *, X_val=None, y_val=None, progress: bool = False,
+    def fit(self, X: ArrayLike, y: ArrayLike, *, X_val: ArrayLike | None = None,
+            y_val: ArrayLike | None = None, progress: bool = False,
             input_names: tuple[str, ...] | None = None, output_name: str = "y") -> LolimotResult:
         """Grow the tree on ``(X, y)``; choose the model count by validation RMSE or AICc.
 
@@ -164,55 +199,64 @@ class Lolimot:
         X_val, y_val : optional validation data for the choice of the number of models.
         progress : show a tqdm bar over the splits.
         """
-        X = _as_2d(X)
-        y = np.asarray(y, dtype=float).ravel()
-        if y.shape[0] != X.shape[0]:
-            raise ValueError(f"X has {X.shape[0]} rows but y has {y.shape[0]}")
-        if not (np.all(np.isfinite(X)) and np.all(np.isfinite(y))):
+        Xa = _as_2d(X)
+        ya: FloatArray = np.asarray(y, dtype=float).ravel()
+        if ya.shape[0] != Xa.shape[0]:
+            raise ValueError(f"X has {Xa.shape[0]} rows but y has {ya.shape[0]}")
+        if not (np.all(np.isfinite(Xa)) and np.all(np.isfinite(ya))):
             raise ValueError("X and y must be finite (drop NaN/inf rows first)")
-        n, p = X.shape
+        n, p = Xa.shape
         if n < p + 1:
             raise ValueError(f"need at least {p + 1} samples for {p} inputs, got {n}")
-        have_val = X_val is not None and y_val is not None
-        if have_val:
-            X_val = _as_2d(X_val, p)
-            y_val = np.asarray(y_val, dtype=float).ravel()
-            if y_val.shape[0] != X_val.shape[0] or not (
-                    np.all(np.isfinite(X_val)) and np.all(np.isfinite(y_val))):
+        val: tuple[FloatArray, FloatArray] | None = None
+        if X_val is not None and y_val is not None:
+            Xv = _as_2d(X_val, p)
+            yv: FloatArray = np.asarray(y_val, dtype=float).ravel()
+            if yv.shape[0] != Xv.shape[0] or not (
+                    np.all(np.isfinite(Xv)) and np.all(np.isfinite(yv))):
                 raise ValueError("X_val and y_val must be finite and of matching length")
+            val = (Xv, yv)
         self.input_names = tuple(input_names) if input_names else tuple(
             f"x{d}" for d in range(p))
         if len(self.input_names) != p:
             raise ValueError("one input name per input column is required")
         self.output_name = output_name
 
-        x_min = X.min(axis=0)
-        x_scale = X.max(axis=0) - x_min
+        x_min = Xa.min(axis=0)
+        x_scale = Xa.max(axis=0) - x_min
         x_scale[x_scale <= 0] = 1.0
-        self._x_min, self._x_scale = x_min, x_scale
-        Z = (X - x_min) / x_scale
-        Zv = (X_val - x_min) / x_scale if have_val else None
-        self._coverage = self._coverage_grid(Z)
-        w = np.ones(n)
-        wv = np.ones(Zv.shape[0]) if have_val else None
+        Z = (Xa - x_min) / x_scale
+        coverage = self._coverage_grid(Z)
+        w: FloatArray = np.ones(n)
         if self.compress_bins:
-            Z, y, w = self._pool(Z, y)
-            if have_val:
-                Zv, y_val, wv = self._pool(Zv, y_val)
+            Z, ya, w = self._pool(Z, ya)
+        vdata: tuple[FloatArray, FloatArray, FloatArray] | None = None
+        if val is not None:
+            Zv = (val[0] - x_min) / x_scale
+            vdata = self._pool(Zv, val[1]) if self.compress_bins else \
+                (Zv, val[1], np.ones(Zv.shape[0]))
+        stats = self._stats(Z, ya)
 
-        def rmse(e, wt):
+        def rmse(e: FloatArray, wt: FloatArray) -> float:
             return float(np.sqrt(np.sum(wt * e ** 2) / np.sum(wt)))
 
-        lo = np.zeros((1, p))
-        hi = np.ones((1, p))
-        theta, phi = self._estimate(Z, y, w, lo, hi)
-        err = y - self._blend(Z, phi, theta)
+        def val_rmse(lo: FloatArray, hi: FloatArray, theta: FloatArray) -> float:
+            assert vdata is not None
+            Zq, yq, wq = vdata
+            return rmse(yq - self._blend(Zq, self._validity(Zq, lo, hi), theta), wq)
+
+        lo: FloatArray = np.zeros((1, p))
+        hi: FloatArray = np.ones((1, p))
+        L = _log_mu(Z, lo, hi, self.k_sigma)
+        phi = _normalised(L)
+        theta = self._solve(stats, w, phi)
+        err = ya - self._blend(Z, phi, theta)
         snapshots = [(lo, hi, theta)]
         loss = [rmse(err, w)]
         val_loss: list[float] = []
-        if have_val:
-            val_loss.append(rmse(y_val - self._blend(Zv, self._validity(Zv, lo, hi), theta), wv))
-        crit = [val_loss[-1] if have_val else self._aicc(err, w, 1, p)]
+        if vdata is not None:
+            val_loss.append(val_rmse(lo, hi, theta))
+        crit = [val_loss[-1] if vdata is not None else self._aicc(err, w, 1, p)]
         splits: list[tuple[int, int]] = []
         frozen = np.zeros(1, dtype=bool)  # cells that cannot be split further
         message = f"reached max_models={self.max_models}"
@@ -228,60 +272,71 @@ class Lolimot:
                 message = "no cell can be split (min_samples_per_model)"
                 break
             worst = int(np.argmax(local_loss))
-            best = None
+            keep = np.arange(lo.shape[0]) != worst
+            best: tuple[float, int, FloatArray, FloatArray, FloatArray, FloatArray,
+                        FloatArray, FloatArray] | None = None
             for d in range(p):
                 cand = self._split(Z, w, lo, hi, worst, d)
                 if cand is None:
                     continue
                 c_lo, c_hi = cand
-                c_theta, c_phi = self._estimate(Z, y, w, c_lo, c_hi)
-                c_err = y - self._blend(Z, c_phi, c_theta)
+                if self._fast_splits:   # two new columns; the others as they were
+                    c_L = np.concatenate(
+                        [L[:, keep], _log_mu(Z, c_lo[-2:], c_hi[-2:], self.k_sigma)], axis=1)
+                else:
+                    c_L = _log_mu(Z, c_lo, c_hi, self.k_sigma)
+                c_phi = _normalised(c_L)
+                c_theta = self._solve(stats, w, c_phi)
+                c_err = ya - self._blend(Z, c_phi, c_theta)
                 sse = float(np.sum(w * c_err ** 2))
                 if best is None or sse < best[0]:
-                    best = (sse, d, c_lo, c_hi, c_theta, c_phi, c_err)
+                    best = (sse, d, c_lo, c_hi, c_theta, c_phi, c_err, c_L)
             if best is None:
                 frozen[worst] = True
                 continue
             nit += 1
-            _, d, lo, hi, theta, phi, err = best
+            _, d, lo, hi, theta, phi, err, L = best
             frozen = np.append(np.delete(frozen, worst), [False, False])
             splits.append((worst, d))
             snapshots.append((lo, hi, theta))
             loss.append(rmse(err, w))
-            if have_val:
-                val_loss.append(rmse(y_val - self._blend(Zv, self._validity(Zv, lo, hi), theta),
-                                     wv))
-            crit.append(val_loss[-1] if have_val else self._aicc(err, w, lo.shape[0], p))
+            if vdata is not None:
+                val_loss.append(val_rmse(lo, hi, theta))
+            crit.append(val_loss[-1] if vdata is not None else
+                        self._aicc(err, w, lo.shape[0], p))
             if bar is not None:
                 bar.update(1)
             if len(crit) - 1 - int(np.argmin(crit)) >= self.patience:
                 message = f"criterion did not improve for {self.patience} splits"
                 break
-            if loss[-1] <= 1e-12 * (1.0 + float(np.abs(y).max())):
+            if loss[-1] <= 1e-12 * (1.0 + float(np.abs(ya).max())):
                 message = "training error vanished"
                 break
         if bar is not None:
             bar.close()
         k = int(np.argmin(crit))
-        self._lo, self._hi, self._theta = snapshots[k]
+        self._state = _Fitted(x_min, x_scale, *snapshots[k], coverage)
         return LolimotResult(
             n_models=k + 1, loss=np.asarray(loss), val_loss=np.asarray(val_loss),
-            criterion=np.asarray(crit), criterion_name="val_rmse" if have_val else "aicc",
-            nit=nit, success=True, message=message, train_rmse=loss[k],
-            val_rmse=val_loss[k] if have_val else float("nan"), splits=tuple(splits[:k]))
+            criterion=np.asarray(crit), criterion_name="val_rmse" if vdata is not None
+            else "aicc", nit=nit, success=True, message=message, train_rmse=loss[k],
+            val_rmse=val_loss[k] if vdata is not None else float("nan"),
+            splits=tuple(splits[:k]))
 
-    def _pool(self, Z, y):
+    def _pool(self, Z: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Bin means of (Z, y) on a compress_bins**p grid, weighted by the sample counts."""
         B = self.compress_bins
         idx = np.clip((Z * B).astype(np.int64), 0, B - 1)
         flat = np.ravel_multi_index(tuple(idx.T), (B,) * Z.shape[1])
-        uniq, inv = np.unique(flat, return_inverse=True)
+        _, inv = np.unique(flat, return_inverse=True)
         w = np.bincount(inv).astype(float)
         Zp = np.column_stack([np.bincount(inv, weights=Z[:, d]) for d in range(Z.shape[1])])
         return Zp / w[:, None], np.bincount(inv, weights=y) / w, w
 
-    def _split(self, Z, w, lo, hi, i, d):
-        """Halve cell ``i`` along input ``d``; None if a half holds too few samples."""
+    def _split(self, Z: FloatArray, w: FloatArray, lo: FloatArray, hi: FloatArray, i: int,
+               d: int) -> tuple[FloatArray, FloatArray] | None:
+        """Halve cell ``i`` along input ``d``; None if a half holds too few samples. The two
+        halves come last (the other cells keep their order)."""
         mid = 0.5 * (lo[i, d] + hi[i, d])
         inside = np.all((lo[i] <= Z) & (hi[i] >= Z), axis=1)
         n_left = float(np.sum(w[inside & (Z[:, d] < mid)]))
@@ -294,50 +349,53 @@ class Lolimot:
         keep = np.arange(lo.shape[0]) != i
         return (np.vstack([lo[keep], lo_a, lo_b]), np.vstack([hi[keep], hi_a, hi_b]))
 
-    def _validity(self, Z, lo, hi) -> np.ndarray:
+    def _validity(self, Z: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
         """Normalised validity functions Phi (N, M); log-sum-exp keeps far points finite."""
-        centre = 0.5 * (lo + hi)
-        sigma = self.k_sigma * (hi - lo)
-        q = ((Z[:, None, :] - centre[None]) / sigma[None]) ** 2
-        logmu = -0.5 * q.sum(axis=2)
-        logmu -= logmu.max(axis=1, keepdims=True)
-        mu = np.exp(logmu)
-        return mu / mu.sum(axis=1, keepdims=True)
+        return _normalised(_log_mu(Z, lo, hi, self.k_sigma))
 
-    def _estimate(self, Z, y, w, lo, hi):
-        """Local weighted least squares for all cells at once (ridge on the slopes); ``w`` are
-        sample weights (counts of pooled samples)."""
-        phi = self._validity(Z, lo, hi)
+    @staticmethod
+    def _stats(Z: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Regressor products of the data, the same for every tree: the outer products of
+        ``a = [1, z]`` flattened (N, q*q) and ``a y`` (N, q)."""
         A = np.hstack([np.ones((Z.shape[0], 1)), Z])
         q = A.shape[1]
         # Outer products once, then one matrix product for all cells (BLAS, not einsum loops).
         AA = (A[:, :, None] * A[:, None, :]).reshape(A.shape[0], q * q)
+        return AA, A * y[:, None]
+
+    def _solve(self, stats: tuple[FloatArray, FloatArray], w: FloatArray,
+               phi: FloatArray) -> FloatArray:
+        """Local weighted least squares for all cells at once (ridge on the slopes); ``w`` are
+        sample weights (counts of pooled samples)."""
+        AA, Ay = stats
+        q = Ay.shape[1]
         pw = phi * w[:, None]
         G = (pw.T @ AA).reshape(-1, q, q)
-        b = pw.T @ (A * y[:, None])
+        b = pw.T @ Ay
         reg = np.eye(q)
         reg[0, 0] = 0.0
         wsum = pw.sum(axis=0)
         # A tiny absolute term keeps cells with no weight at all solvable.
         G = G + (self.ridge * wsum[:, None, None] + 1e-12) * reg[None]
         G[:, 0, 0] += 1e-12
-        theta = np.linalg.solve(G, b[..., None])[..., 0]
-        return theta, phi
+        theta: FloatArray = np.linalg.solve(G, b[..., None])[..., 0]
+        return theta
 
     @staticmethod
-    def _blend(Z, phi, theta) -> np.ndarray:
+    def _blend(Z: FloatArray, phi: FloatArray, theta: FloatArray) -> FloatArray:
         local = theta[:, 0][None, :] + Z @ theta[:, 1:].T
-        return (phi * local).sum(axis=1)
+        out: FloatArray = (phi * local).sum(axis=1)
+        return out
 
     @staticmethod
-    def _aicc(err, w, m, p) -> float:
+    def _aicc(err: FloatArray, w: FloatArray, m: int, p: int) -> float:
         n = float(np.sum(w))
         k = m * (p + 1)
         sse = max(float(np.sum(w * err ** 2)), 1e-300)
         corr = 2.0 * k * (k + 1) / (n - k - 1) if n - k - 1 > 0 else np.inf
-        return n * np.log(sse / n) + 2.0 * k + corr
+        return float(n * np.log(sse / n) + 2.0 * k + corr)
 
-    def _coverage_grid(self, Z) -> np.ndarray:
+    def _coverage_grid(self, Z: FloatArray) -> BoolArray:
         p = Z.shape[1]
         bins = self.coverage_bins
         if bins ** p > _MAX_GRID_CELLS:
@@ -348,79 +406,82 @@ class Lolimot:
         return _closing(counts >= self.coverage_min_count)
 
     # ------------------------------------------------------------------ using
-    def _require_fitted(self) -> None:
-        if self._theta is None:
+    def _fitted(self) -> _Fitted:
+        if self._state is None:
             raise RuntimeError("model is not fitted: call fit() or load() first")
+        return self._state
 
-    def _scaled(self, X) -> np.ndarray:
-        self._require_fitted()
-        X = _as_2d(X, self._x_min.shape[0])
-        return (X - self._x_min) / self._x_scale
+    def _scaled(self, X: ArrayLike) -> FloatArray:
+        st = self._fitted()
+        Xa = _as_2d(X, st.x_min.shape[0])
+        Z: FloatArray = (Xa - st.x_min) / st.x_scale
+        return Z
 
-    def predict(self, X) -> np.ndarray:
+    def predict(self, X: ArrayLike) -> FloatArray:
         """Model output for (N, p) inputs; NaN rows give NaN. Extrapolates the outer models."""
+        st = self._fitted()
         Z = self._scaled(X)
         ok = np.all(np.isfinite(Z), axis=1)
         out = np.full(Z.shape[0], np.nan)
         if ok.any():
             Zk = Z[ok]
-            out[ok] = self._blend(Zk, self._validity(Zk, self._lo, self._hi), self._theta)
+            out[ok] = self._blend(Zk, self._validity(Zk, st.lo, st.hi), st.theta)
         return out
 
-    def validity(self, X) -> np.ndarray:
+    def validity(self, X: ArrayLike) -> FloatArray:
         """Normalised validity functions Phi_i(x), shape (N, M); rows sum to one."""
-        Z = self._scaled(X)
-        return self._validity(Z, self._lo, self._hi)
+        st = self._fitted()
+        return self._validity(self._scaled(X), st.lo, st.hi)
 
-    def in_region(self, X) -> np.ndarray:
+    def in_region(self, X: ArrayLike) -> BoolArray:
         """True where x lies inside the training data's bounding box and in a coverage bin
         that held training data (the identified region)."""
         Z = self._scaled(X)
-        ok = np.all(np.isfinite(Z), axis=1) & np.all((Z >= 0.0) & (Z <= 1.0), axis=1)
-        grid = self._coverage
+        ok: BoolArray = np.all(np.isfinite(Z), axis=1) & np.all((Z >= 0.0) & (Z <= 1.0), axis=1)
+        grid = self._fitted().coverage
         bins = grid.shape[0]
         if grid.size == 1:
             return ok
         idx = np.clip((np.nan_to_num(Z) * bins).astype(int), 0, bins - 1)
-        return ok & grid[tuple(idx.T)]
+        inside: BoolArray = ok & grid[tuple(idx.T)]
+        return inside
 
     # ------------------------------------------------------------------ inspection
     @property
     def n_models(self) -> int:
-        self._require_fitted()
-        return int(self._theta.shape[0])
+        return int(self._fitted().theta.shape[0])
 
     @property
-    def centres(self) -> np.ndarray:
+    def centres(self) -> FloatArray:
         """Cell centres in input units, shape (M, p)."""
-        self._require_fitted()
-        return self._x_min + 0.5 * (self._lo + self._hi) * self._x_scale
+        st = self._fitted()
+        return st.x_min + 0.5 * (st.lo + st.hi) * st.x_scale
 
     @property
-    def cell_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+    def cell_bounds(self) -> tuple[FloatArray, FloatArray]:
         """Lower and upper cell bounds in input units, each (M, p)."""
-        self._require_fitted()
-        return (self._x_min + self._lo * self._x_scale, self._x_min + self._hi * self._x_scale)
+        st = self._fitted()
+        return (st.x_min + st.lo * st.x_scale, st.x_min + st.hi * st.x_scale)
 
     @property
-    def sigmas(self) -> np.ndarray:
+    def sigmas(self) -> FloatArray:
         """Widths of the Gaussian validity functions in input units, (M, p)."""
-        self._require_fitted()
-        return self.k_sigma * (self._hi - self._lo) * self._x_scale
+        st = self._fitted()
+        sig: FloatArray = self.k_sigma * (st.hi - st.lo) * st.x_scale
+        return sig
 
     @property
-    def coverage(self) -> np.ndarray:
+    def coverage(self) -> BoolArray:
         """Boolean coverage grid (coverage_bins per input) over the training bounding box."""
-        self._require_fitted()
-        return self._coverage.copy()
+        return self._fitted().coverage.copy()
 
     @property
-    def input_range(self) -> tuple[np.ndarray, np.ndarray]:
+    def input_range(self) -> tuple[FloatArray, FloatArray]:
         """Bounding box of the training inputs (min, max)."""
-        self._require_fitted()
-        return self._x_min.copy(), self._x_min + self._x_scale
+        st = self._fitted()
+        return st.x_min.copy(), st.x_min + st.x_scale
 
-    def local_parameters(self) -> tuple[np.ndarray, np.ndarray]:
+    def local_parameters(self) -> tuple[FloatArray, FloatArray]:
         """Local models as ``y_i = offset_i + slopes_i . (x - centre_i)`` in input units.
 
         Returns
@@ -428,59 +489,61 @@ class Lolimot:
         offset : (M,) value of each local model at its centre.
         slopes : (M, p) partial derivatives in output units per input unit.
         """
-        self._require_fitted()
-        zc = 0.5 * (self._lo + self._hi)
-        offset = self._theta[:, 0] + np.einsum("mj,mj->m", self._theta[:, 1:], zc)
-        return offset, self._theta[:, 1:] / self._x_scale
+        st = self._fitted()
+        zc = 0.5 * (st.lo + st.hi)
+        offset: FloatArray = st.theta[:, 0] + np.einsum("mj,mj->m", st.theta[:, 1:], zc)
+        return offset, st.theta[:, 1:] / st.x_scale
 
     # ------------------------------------------------------------------ persistence
-    def to_arrays(self) -> dict[str, np.ndarray]:
+    def to_arrays(self) -> dict[str, NDArray[Any]]:
         """All state as arrays (for npz); inverse of :meth:`from_arrays`."""
-        self._require_fitted()
+        st = self._fitted()
         meta = {"max_models": self.max_models, "k_sigma": self.k_sigma, "ridge": self.ridge,
                 "min_samples_per_model": self.min_samples_per_model,
                 "patience": self.patience, "coverage_bins": self.coverage_bins,
                 "coverage_min_count": self.coverage_min_count,
                 "compress_bins": self.compress_bins,
                 "input_names": list(self.input_names), "output_name": self.output_name}
-        return {"x_min": self._x_min, "x_scale": self._x_scale, "lo": self._lo, "hi": self._hi,
-                "theta": self._theta, "coverage": self._coverage,
+        return {"x_min": st.x_min, "x_scale": st.x_scale, "lo": st.lo, "hi": st.hi,
+                "theta": st.theta, "coverage": st.coverage,
                 "meta": np.array(json.dumps(meta))}
 
     @classmethod
-    def from_arrays(cls, arrays) -> Lolimot:
+    def from_arrays(cls, arrays: Mapping[str, Any]) -> Lolimot:
         try:
             meta = json.loads(str(arrays["meta"]))
             names = meta.pop("input_names")
             out_name = meta.pop("output_name")
             model = cls(**meta)
-            model._x_min = np.asarray(arrays["x_min"], dtype=float)
-            model._x_scale = np.asarray(arrays["x_scale"], dtype=float)
-            model._lo = np.asarray(arrays["lo"], dtype=float)
-            model._hi = np.asarray(arrays["hi"], dtype=float)
-            model._theta = np.asarray(arrays["theta"], dtype=float)
-            model._coverage = np.asarray(arrays["coverage"], dtype=bool)
+            st = _Fitted(x_min=np.asarray(arrays["x_min"], dtype=float),
+                         x_scale=np.asarray(arrays["x_scale"], dtype=float),
+                         lo=np.asarray(arrays["lo"], dtype=float),
+                         hi=np.asarray(arrays["hi"], dtype=float),
+                         theta=np.asarray(arrays["theta"], dtype=float),
+                         coverage=np.asarray(arrays["coverage"], dtype=bool))
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"not a LOLIMOT model file: {exc}") from exc
-        p = model._x_min.shape[0]
-        if model._lo.shape != model._hi.shape or model._lo.shape[1] != p or \
-                model._theta.shape != (model._lo.shape[0], p + 1):
+        p = st.x_min.shape[0]
+        if st.lo.shape != st.hi.shape or st.lo.shape[1] != p or \
+                st.theta.shape != (st.lo.shape[0], p + 1):
             raise ValueError("inconsistent LOLIMOT model arrays")
+        model._state = st
         model.input_names = tuple(names)
         model.output_name = out_name
         return model
 
-    def save(self, path) -> Path:
+    def save(self, path: str | Path) -> Path:
         """Write the model to an ``.npz`` file (no pickles)."""
         path = Path(path)
         if path.suffix != ".npz":
             path = path.with_suffix(".npz")
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(path, **self.to_arrays())
+        arrays: dict[str, Any] = self.to_arrays()
+        np.savez_compressed(path, allow_pickle=False, **arrays)
         return path
 
     @classmethod
-    def load(cls, path) -> Lolimot:
+    def load(cls, path: str | Path) -> Lolimot:
         path = Path(path)
         if not path.exists():
             raise FileNotFoundError(f"no LOLIMOT model at {path}")

@@ -24,6 +24,7 @@ margin) are predicted as NaN: the analysis masks them instead of extrapolating a
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -100,7 +101,8 @@ class SpeedDensityModel:
     def m_th(self, data: Measured) -> np.ndarray:
         """Ideal displacement-pump flow in channel units."""
         n, p, T = data[self.n], data[self.p], data[self.T]
-        return n / 120.0 * self.displacement_l * 1e-3 * p / (R_AIR * T) * self.flow_scale
+        return np.asarray(n / 120.0 * self.displacement_l * 1e-3 * p / (R_AIR * T)
+                          * self.flow_scale, float)
 
     def _z(self, data: Measured) -> tuple[np.ndarray, np.ndarray]:
         (n0, n1), (p0, p1) = self.n_range, self.p_range
@@ -228,7 +230,7 @@ class SpeedDensityModel:
                                     "volumes_l": tuple(float(v) for v in sol[k:kv]),
                                     "harm_coef": tuple(float(v) for v in sol[kv:])})
 
-    def to_params(self) -> dict:
+    def to_params(self) -> dict[str, Any]:
         return dict(displacement_l=self.displacement_l, n=self.n, p=self.p, T=self.T,
                     channel=self.channel, flow_scale=self.flow_scale, degree=self.degree,
                     coef=tuple(self.coef), n_range=tuple(self.n_range),
@@ -240,7 +242,7 @@ class SpeedDensityModel:
                     orders=tuple(self.orders), harmonic_degree=self.harmonic_degree,
                     harm_coef=tuple(self.harm_coef))
 
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         d = self.to_params()
         d["type"] = self.kind
         for k in ("coef", "n_range", "p_range", "storage", "volumes_l", "orders", "harm_coef"):
@@ -248,7 +250,7 @@ class SpeedDensityModel:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> SpeedDensityModel:
+    def from_dict(cls, d: dict[str, Any]) -> SpeedDensityModel:
         d = {k: v for k, v in d.items() if k != "type"}
         for k in ("coef", "n_range", "p_range", "volumes_l", "orders", "harm_coef"):
             if k in d:

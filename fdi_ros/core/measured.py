@@ -28,6 +28,7 @@ import csv
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -103,7 +104,7 @@ class Measured:
             ok &= np.isfinite(self[name])
         return ok
 
-    def skipped(self, names: tuple[str, ...] | list[str]) -> dict:
+    def skipped(self, names: tuple[str, ...] | list[str]) -> dict[str, Any]:
         """What an analysis of ``names`` leaves out: samples where any of them is missing or
         non-finite, in all and per signal (``{"samples", "of", "by_signal"}``)."""
         by_signal = {n: int(np.sum(~np.isfinite(self[n]))) for n in names}
@@ -155,7 +156,7 @@ class Mapping:
     name: str = ""
 
     @classmethod
-    def from_dict(cls, d: dict, *, name: str = "") -> Mapping:
+    def from_dict(cls, d: dict[str, Any], *, name: str = "") -> Mapping:
         if not isinstance(d, dict):
             raise ValueError(f"mapping {name}: expected a mapping at top level")
         unknown = set(d) - {"time", "signals", "alpha", "keep_unmapped", "max_gap_s",
@@ -297,13 +298,13 @@ def load_csv(path: str | Path, mapping: Mapping | str | Path | None = None, *,
                     units[c] = ""
         gap = max_gap_s if max_gap_s is not None else mapping.max_gap_s
     if not np.all(np.isfinite(t)):
-        k = int(np.argmin(np.isfinite(t)))
-        raise ValueError(f"{path}: time missing at data row {k + 1}")
+        row = int(np.argmin(np.isfinite(t)))
+        raise ValueError(f"{path}: time missing at data row {row + 1}")
     steps = np.diff(t)
     if np.any(steps <= 0):
-        k = int(np.argmax(steps <= 0))
-        raise ValueError(f"{path}: time is not strictly increasing at data row {k + 2} "
-                         f"(t = {t[k]:g} then {t[k + 1]:g} s)")
+        row = int(np.argmax(steps <= 0))
+        raise ValueError(f"{path}: time is not strictly increasing at data row {row + 2} "
+                         f"(t = {t[row]:g} then {t[row + 1]:g} s)")
     if gap is None:
         gap = 5.0 * float(np.median(steps))
     return Measured(t=t, signals=signals, units=units, alpha=alpha,

@@ -26,6 +26,7 @@ one event per revolution). The leak flux q is the isentropic orifice flow per un
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -33,7 +34,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 from scipy.signal import lfilter
 
-from fdi_ros.core.discrepancy.context import ChannelContext
+from fdi_ros.core.discrepancy.context import ChannelContext, smooth_derivative
 
 CATALOGUE = ("input_dependence", "missing_harmonic", "sensor_lag", "dead_time", "gain_error",
              "offset", "drift", "leak", "local_region")
@@ -121,7 +122,7 @@ def _train_mask(ctx: ChannelContext, base: np.ndarray, train: np.ndarray,
     m = train & np.isfinite(ctx.y) & np.isfinite(base)
     for e in extra:
         m &= np.isfinite(e)
-    return m
+    return np.asarray(m, bool)
 
 
 def _fit_scalar(r: np.ndarray, g: np.ndarray, t: np.ndarray, m: np.ndarray, *, onset: bool,
@@ -176,14 +177,14 @@ def _fit_piecewise(r: np.ndarray, g: np.ndarray, t: np.ndarray, m: np.ndarray, *
     total = float(np.dot(r[idx], r[idx])) or 1.0
     min_len = max(20, n // 100)
 
-    def red(s_rg, s_gg):
+    def red(s_rg: np.ndarray, s_gg: np.ndarray) -> np.ndarray:
         with np.errstate(divide="ignore", invalid="ignore"):
             v = np.where(s_gg > 0, s_rg ** 2 / s_gg, 0.0)
         return np.where(s_rg > 0, v, 0.0) if nonneg else v
 
     cuts = [0, n]
     for _ in range(max_changes):
-        best = (0.0, None)
+        best: tuple[float, int | None] = (0.0, None)
         for a, b in zip(cuts[:-1], cuts[1:]):
             if b - a < 2 * min_len:
                 continue
@@ -241,7 +242,7 @@ def _piecewise_beta(t: np.ndarray, params: dict[str, Any]) -> np.ndarray:
     return np.asarray(params["values"])[np.searchsorted(params["changes_s"], t, side="right")]
 
 
-def _label(name: str, eff) -> str:
+def _label(name: str, eff: object) -> str:
     if getattr(eff, "piecewise", False):
         return f"{name} (piecewise in time)"
     return f"{name} after onset" if getattr(eff, "onset", False) else name
@@ -337,20 +338,22 @@ class Offset(_StepError):
         return np.ones_like(base)
 
     def _with(self, base: np.ndarray, delta: np.ndarray) -> np.ndarray:
-        return base + delta
+        return np.asarray(base + delta, float)
 
 
 @dataclass(frozen=True)
 class GainError(_StepError):
+    """A gain of the channel: the prediction times (1 + b)."""
+
     id = "gain_error"
     name = "gain error"
     key = "gain"
 
-    def _regressor(self, base: np.ndarray) -> np.ndarray:
-        return base
-
     def _value(self, b: float) -> float:
         return 1.0 + b
+
+    def _regressor(self, base: np.ndarray) -> np.ndarray:
+        return base
 
     def _with(self, base: np.ndarray, delta: np.ndarray) -> np.ndarray:
         return base * (1.0 + delta)
@@ -372,17 +375,20 @@ class GainError(_StepError):
 class Drift(Effect):
     id = "drift"
 
-    def fit(self, ctx, base, train, *, refine=False):
+    def fit(self, ctx: ChannelContext, base: np.ndarray, train: np.ndarray, *,
+            refine: bool = False) -> dict[str, Any]:
         m = _train_mask(ctx, base, train)
         rate, _ = _fit_scalar(ctx.y - base, ctx.t - ctx.t_ref, ctx.t, m, onset=False,
                               nonneg=False)
         return {"rate_per_s": rate, "t_ref_s": ctx.t_ref}
 
-    def apply(self, ctx, base, params):
-        return base + params["rate_per_s"] * (ctx.t - params["t_ref_s"])
+    def apply(self, ctx: ChannelContext, base: np.ndarray, params: dict[str, Any]
+              ) -> np.ndarray:
+        return np.asarray(base + params["rate_per_s"] * (ctx.t - params["t_ref_s"]), float)
 
 
-def _fit_1d(ctx: ChannelContext, base: np.ndarray, train: np.ndarray, transform, lo: float,
+def _fit_1d(ctx: ChannelContext, base: np.ndarray, train: np.ndarray,
+            transform: Callable[[float], np.ndarray], lo: float,
             hi: float, *, log: bool, key: str, refine: bool, n_grid: int = 40
             ) -> float:
     """Minimise the training SSE of ``transform(value)`` over [lo, hi].
@@ -408,6 +414,7 @@ def _fit_1d(ctx: ChannelContext, base: np.ndarray, train: np.ndarray, transform,
         if cache is None or cache["base"] is not base:  # one base per effect
             # every fold trains on the valid samples minus a few index intervals: its SSE is
             # the total minus those intervals' sums, read off one cumulative sum
+            assert folds is not None
             i0, i1, owner = folds
             okv = ctx.ok & valid
             table = np.empty((n_grid, int(owner.max()) + 1))
@@ -442,42 +449,65 @@ def _fit_1d(ctx: ChannelContext, base: np.ndarray, train: np.ndarray, transform,
     return best
 
 
+def _upper(ctx: ChannelContext, cap: float, fraction: int | float, floor: float) -> float:
+    """Upper end of a time-constant search: ``cap``, at most the record length / ``fraction``,
+    at least ``floor``."""
+    return float(max(min(cap, (ctx.t[-1] - ctx.t[0]) / fraction), floor))
+
+
 @dataclass(frozen=True)
-class SensorLag(Effect):
+class _Filter(Effect):
+    """A one-parameter transformation of the prediction (its parameter ``key``), fitted by a
+    grid search with parabolic refinement (:func:`_fit_1d`)."""
+
+    key = ""
+
+    def _grid(self, ctx: ChannelContext) -> tuple[float, float, bool, int]:
+        """(lowest, highest value, logarithmic grid?, grid points)."""
+        raise NotImplementedError
+
+    def _transform(self, ctx: ChannelContext, base: np.ndarray, v: float) -> np.ndarray:
+        raise NotImplementedError
+
+    def fit(self, ctx: ChannelContext, base: np.ndarray, train: np.ndarray, *,
+            refine: bool = False) -> dict[str, Any]:
+        lo, hi, log, n_grid = self._grid(ctx)
+        v = _fit_1d(ctx, base, train, lambda x: self._transform(ctx, base, x), lo, hi,
+                    log=log, key=self.label, refine=refine, n_grid=n_grid)
+        return {self.key: v}
+
+    def apply(self, ctx: ChannelContext, base: np.ndarray, params: dict[str, Any]
+              ) -> np.ndarray:
+        return self._transform(ctx, base, float(params[self.key]))
+
+
+@dataclass(frozen=True)
+class SensorLag(_Filter):
     id = "sensor_lag"
+    key = "tau_s"
     max_tau_s: float = 5.0
 
-    def _range(self, ctx):
-        dur = ctx.t[-1] - ctx.t[0]
-        return 0.2 * ctx.dt, max(min(self.max_tau_s, dur / 10.0), ctx.dt)
+    def _grid(self, ctx: ChannelContext) -> tuple[float, float, bool, int]:
+        return 0.2 * ctx.dt, _upper(ctx, self.max_tau_s, 10.0, ctx.dt), True, 40
 
-    def fit(self, ctx, base, train, *, refine=False):
-        lo, hi = self._range(ctx)
-        tau = _fit_1d(ctx, base, train, lambda v: lowpass(base, ctx.t, ctx.segment, v), lo, hi,
-                      log=True, key=self.label, refine=refine)
-        return {"tau_s": tau}
-
-    def apply(self, ctx, base, params):
-        return lowpass(base, ctx.t, ctx.segment, params["tau_s"])
+    def _transform(self, ctx: ChannelContext, base: np.ndarray, v: float) -> np.ndarray:
+        return lowpass(base, ctx.t, ctx.segment, v)
 
 
 @dataclass(frozen=True)
-class DeadTime(Effect):
+class DeadTime(_Filter):
     id = "dead_time"
+    key = "delay_s"
     max_delay_s: float = 0.5
 
-    def fit(self, ctx, base, train, *, refine=False):
-        dur = ctx.t[-1] - ctx.t[0]
-        hi = max(min(self.max_delay_s, dur / 20.0), 2 * ctx.dt)
-        d = _fit_1d(ctx, base, train, lambda v: delay(base, ctx.t, ctx.segment, v), 0.0, hi,
-                    log=False, key=self.label, refine=refine,
-                    # one grid point per sample step: with a pulsating signal the error is
-                    # multimodal in the delay (period of the pulsation), a coarse grid misses
-                    n_grid=int(min(600, max(12, hi / ctx.dt + 1))))
-        return {"delay_s": d}
+    def _transform(self, ctx: ChannelContext, base: np.ndarray, v: float) -> np.ndarray:
+        return delay(base, ctx.t, ctx.segment, v)
 
-    def apply(self, ctx, base, params):
-        return delay(base, ctx.t, ctx.segment, params["delay_s"])
+    def _grid(self, ctx: ChannelContext) -> tuple[float, float, bool, int]:
+        hi = _upper(ctx, self.max_delay_s, 20.0, 2 * ctx.dt)
+        # one grid point per sample step: with a pulsating signal the error is multimodal in
+        # the delay (period of the pulsation), a coarse grid misses
+        return 0.0, hi, False, int(min(600, max(12, hi / ctx.dt + 1)))
 
 
 @dataclass(frozen=True)
@@ -501,12 +531,14 @@ class InputDependence(Effect):
     def n_params(self) -> int:
         return self.degree
 
-    def _basis(self, x, center, scale, sq_mean):
+    def _basis(self, x: np.ndarray, center: float, scale: float, sq_mean: float
+               ) -> np.ndarray:
         z = (x - center) / scale
         cols = [z] + ([z ** 2 - sq_mean] if self.degree >= 2 else [])
         return np.stack(cols, axis=1)
 
-    def fit(self, ctx, base, train, *, refine=False):
+    def fit(self, ctx: ChannelContext, base: np.ndarray, train: np.ndarray, *,
+            refine: bool = False) -> dict[str, Any]:
         x = ctx.columns[self.column]
         m = _train_mask(ctx, base, train, x)
         if m.sum() < 10 * self.degree:
@@ -519,7 +551,8 @@ class InputDependence(Effect):
         return {"input": self.column, "center": center, "scale": scale, "sq_mean": 1.0,
                 "coef": [float(c) for c in coef]}
 
-    def apply(self, ctx, base, params):
+    def apply(self, ctx: ChannelContext, base: np.ndarray, params: dict[str, Any]
+              ) -> np.ndarray:
         x = ctx.columns[params["input"]]
         corr = self._basis(x, params["center"], params["scale"],
                            params["sq_mean"]) @ np.asarray(params["coef"])
@@ -541,10 +574,13 @@ class Leak(Effect):
     def n_params(self) -> int:
         return 4 if self.piecewise else 2 if self.onset else 1
 
-    def fit(self, ctx, base, train, *, refine=False):
-        q = ctx.leak_q
+    def fit(self, ctx: ChannelContext, base: np.ndarray, train: np.ndarray, *,
+            refine: bool = False) -> dict[str, Any]:
+        q, spec = ctx.leak_q, ctx.leak
+        if q is None or spec is None:
+            raise ValueError(f"no leak regressor for {ctx.channel}")
         m = _train_mask(ctx, base, train, q)
-        cd = ctx.leak.cd
+        cd = spec.cd
         if self.piecewise:
             ch, vals = _fit_piecewise(ctx.y - base, -q, ctx.t, m, nonneg=True)
             cda = max(vals)
@@ -558,7 +594,8 @@ class Leak(Effect):
         return {"cda_mm2": cda * 1e6, "area_mm2": area, "cd": cd,
                 "diameter_mm": math.sqrt(4.0 * area / math.pi), "onset_s": t_on}
 
-    def apply(self, ctx, base, params):
+    def apply(self, ctx: ChannelContext, base: np.ndarray, params: dict[str, Any]
+              ) -> np.ndarray:
         if "changes_s" in params:
             corr = _piecewise_beta(ctx.t, params) * ctx.leak_q
         else:
@@ -576,11 +613,14 @@ class MissingHarmonic(Effect):
         return 3
 
     @staticmethod
-    def _basis(alpha, order):
+    def _basis(alpha: np.ndarray, order: float) -> np.ndarray:
         th = 2.0 * np.pi * order * alpha / 180.0
         return np.stack([np.cos(th), np.sin(th)], axis=1)
 
-    def fit(self, ctx, base, train, *, refine=False):
+    def fit(self, ctx: ChannelContext, base: np.ndarray, train: np.ndarray, *,
+            refine: bool = False) -> dict[str, Any]:
+        if ctx.alpha is None:
+            raise ValueError("a missing harmonic needs the crank angle")
         m = _train_mask(ctx, base, train, ctx.alpha)
         key = ("harmonic basis", self.orders)
         if key not in ctx.cache:  # the basis does not depend on the fold: build it once
@@ -596,17 +636,20 @@ class MissingHarmonic(Effect):
         acc, ass, acs = CC @ w, SS @ w, CS @ w
         det = acc * ass - acs * acs
         ok = det > 1e-12 * np.maximum(acc * ass, 1e-300)
-        a = np.where(ok, (ass * gc - acs * gs) / np.where(ok, det, 1.0), 0.0)
-        b = np.where(ok, (acc * gs - acs * gc) / np.where(ok, det, 1.0), 0.0)
-        reduction = a * gc + b * gs  # SSE decrease of the least-squares fit
+        av = np.where(ok, (ass * gc - acs * gs) / np.where(ok, det, 1.0), 0.0)
+        bv = np.where(ok, (acc * gs - acs * gc) / np.where(ok, det, 1.0), 0.0)
+        reduction = av * gc + bv * gs  # SSE decrease of the least-squares fit
         k = int(np.argmax(reduction))
-        a, b = float(a[k]), float(b[k])
+        a, b = float(av[k]), float(bv[k])
         return {"order": float(self.orders[k]), "amplitude": float(math.hypot(a, b)),
                 "phase_deg": float(math.degrees(math.atan2(-b, a))), "a": a, "b": b}
 
-    def apply(self, ctx, base, params):
+    def apply(self, ctx: ChannelContext, base: np.ndarray, params: dict[str, Any]
+              ) -> np.ndarray:
+        if ctx.alpha is None:
+            return base.copy()
         A = self._basis(ctx.alpha, params["order"])
-        return base + A @ np.array([params["a"], params["b"]])
+        return np.asarray(base + A @ np.array([params["a"], params["b"]]), float)
 
 
 # sensor errors an input sensor can carry: direction of the error (ChannelContext.
@@ -616,7 +659,7 @@ SENSOR_KINDS: dict[str, tuple[str, str, Any]] = {
     "offset": ("one", "offset", lambda b: -b),
     "gain_error": ("x", "gain", lambda b: 1.0 / (1.0 + b) if b > -1.0 else math.inf),
     "drift": ("t", "rate_per_s", lambda b: -b),
-    "sensor_lag": ("shift", "tau_s", lambda b: b),  # fitted as an advance of the reading
+    "sensor_lag": ("shift", "tau_s", lambda b: b),  # fitted on a grid (see SensorError)
     "dead_time": ("shift", "delay_s", lambda b: b),
     "input_dependence": ("col", "coef", lambda b: -b),
 }
@@ -630,9 +673,10 @@ class SensorError(Effect):
     prediction is wrong by about ``D(e)`` (:meth:`ChannelContext.sensor_response`). The fit
     regresses the residual on ``D`` of the error's shape: an offset (constant), a gain
     (proportional to the reading), a drift (proportional to time) or a dependence on a
-    measured column. A lag or dead time is fitted as the advance of the reading that explains
-    the residual best (:meth:`ChannelContext.sensor_shift_response`; a first-order lag tau and
-    a delay d = tau make a slowly varying reading trail the truth alike).
+    measured column. A dead time is fitted as the advance of the reading that explains the
+    residual best (:meth:`ChannelContext.sensor_shift_response`), a first-order lag as the
+    reading plus tau times its slope (:meth:`ChannelContext.sensor_lag_response`); on a slowly
+    varying reading the two are nearly alike (reported as a tie when the data cannot tell).
     ``onset``: offset and gain switch on at an unknown time (an abrupt fault).
     """
 
@@ -665,21 +709,28 @@ class SensorError(Effect):
     max_delay_s: float = 5.0
 
     def _shifted(self, ctx: ChannelContext, base: np.ndarray, v: float) -> np.ndarray:
-        corr = ctx.sensor_shift_response(self.sensor, v)
+        corr = (ctx.sensor_lag_response(self.sensor, v) if self.kind == "sensor_lag"
+                else ctx.sensor_shift_response(self.sensor, v))
         return base + np.where(np.isfinite(corr), corr, 0.0)
 
     def fit(self, ctx: ChannelContext, base: np.ndarray, train: np.ndarray, *,
             refine: bool = False) -> dict[str, Any]:
         _, key, value = SENSOR_KINDS[self.kind]
         if self.kind in ("sensor_lag", "dead_time"):
-            dur = ctx.t[-1] - ctx.t[0]
-            hi = max(min(self.max_delay_s, dur / 12.0), 2 * ctx.dt)
+            hi = _upper(ctx, self.max_delay_s, 12.0, 2 * ctx.dt)
             v = _fit_1d(ctx, base, train, lambda d: self._shifted(ctx, base, d), 0.2 * ctx.dt,
                         hi, log=True, key=self.label, refine=refine, n_grid=36)
             return {key: float(v), "sensor": self.sensor}
         g = ctx.sensor_response(self.sensor, self._direction())
         m = _train_mask(ctx, base, train, g)
-        b, t_on = _fit_scalar(ctx.y - base, g, ctx.t, m, onset=self.onset, nonneg=False)
+        if self.onset and self.kind == "gain_error":
+            # as for a gain of the channel: the onset is the change point of the relative
+            # residual (a gain of an input scales the prediction too), seen at low load as well
+            t_on = _relative_change_point(ctx.y, base, ctx.t, m)
+            after = m & (ctx.t >= t_on) if t_on is not None else m
+            b, _ = _fit_scalar(ctx.y - base, g, ctx.t, after, onset=False, nonneg=False)
+        else:
+            b, t_on = _fit_scalar(ctx.y - base, g, ctx.t, m, onset=self.onset, nonneg=False)
         out: dict[str, Any] = {key: float(value(b)), "beta": float(b), "sensor": self.sensor}
         if self.onset:
             out["onset_s"] = t_on
@@ -697,6 +748,27 @@ class SensorError(Effect):
         corr = params["beta"] * g * _step(ctx.t, params.get("onset_s"))
         return base + np.where(np.isfinite(corr), corr, 0.0)
 
+    def error(self, ctx: ChannelContext, params: dict[str, Any]) -> np.ndarray:
+        """The fitted error of the sensor's reading (reading - truth) per sample, in the
+        sensor's units."""
+        x = ctx.sensor_reading(self.sensor)
+        value = float(params[SENSOR_KINDS[self.kind][1]])
+        if self.kind == "sensor_lag" and ctx.source is not None:
+            data = ctx.source[0]
+            return np.asarray(-value * smooth_derivative(x, data.t, data.segment,
+                                                         max(value, 0.05)), float)
+        if self.kind in ("sensor_lag", "dead_time"):
+            return np.asarray(x - ctx.sensor_reading(self.sensor, value), float)
+        g = ctx.sensor_response(self.sensor, self._direction())
+        # the regressor is D(direction): the error is -beta times the direction itself
+        d = {"one": np.ones_like(x), "x": x, "t": ctx.t - ctx.t_ref}.get(self._direction())
+        if d is None:  # a measured column, standardised as in sensor_response
+            col = np.asarray(ctx.source[0][self.column] if ctx.source is not None else g,
+                             float)
+            d = (col - np.nanmean(col)) / (np.nanstd(col) or 1.0)
+        return np.asarray(-float(params["beta"]) * d * _step(ctx.t, params.get("onset_s")),
+                          float)
+
     def to_dict(self) -> dict[str, Any]:
         return {"effect": "sensor_error", "sensor": self.sensor, "kind": self.kind,
                 "column": self.column, "onset": self.onset}
@@ -708,7 +780,9 @@ def _box_mask(region: dict[str, np.ndarray], box: dict[str, list[float]]) -> np.
         x = region[name]
         k = (x >= lo) & (x < hi)
         m = k if m is None else m & k
-    return m
+    if m is None:
+        raise ValueError("an empty region box")
+    return np.asarray(m, bool)
 
 
 @dataclass(frozen=True)
@@ -728,7 +802,8 @@ class LocalRegion(Effect):
     def n_params(self) -> int:
         return 5
 
-    def fit(self, ctx, base, train, *, refine=False):
+    def fit(self, ctx: ChannelContext, base: np.ndarray, train: np.ndarray, *,
+            refine: bool = False) -> dict[str, Any]:
         names = list(ctx.region)[:2]
         cols = [ctx.region[n] for n in names]
         m = _train_mask(ctx, base, train, *cols)
@@ -763,9 +838,9 @@ class LocalRegion(Effect):
             cur = stack.pop()
             for ax in range(len(shape)):
                 for step in (-1, 1):
-                    nb = list(cur)
-                    nb[ax] += step
-                    nb = tuple(nb)
+                    nbl = list(cur)
+                    nbl[ax] += step
+                    nb = tuple(nbl)
                     if 0 <= nb[ax] < shape[ax] and good[nb] and nb not in cluster:
                         cluster.add(nb)
                         stack.append(nb)
@@ -790,10 +865,10 @@ class LocalRegion(Effect):
         for ax, name in enumerate(names):
             e = edges[ax]
             for side in (0, 1):
-                cur = box[name][side]
-                j = int(np.clip(np.searchsorted(e, cur), 1, len(e) - 2))
+                edge = box[name][side]
+                j = int(np.clip(np.searchsorted(e, edge), 1, len(e) - 2))
                 cands = np.linspace(e[j - 1], e[j + 1], 25)
-                best_v, best_g = cur, gain(box)
+                best_v, best_g = edge, gain(box)
                 for v in cands:
                     trial = {**box, name: list(box[name])}
                     trial[name][side] = float(v)
@@ -806,11 +881,12 @@ class LocalRegion(Effect):
         off = float(r[inside].mean()) if inside.any() else 0.0
         return {"region": box, "offset": off}
 
-    def apply(self, ctx, base, params):
+    def apply(self, ctx: ChannelContext, base: np.ndarray, params: dict[str, Any]
+              ) -> np.ndarray:
         if not params["region"]:
             return base.copy()
         inside = _box_mask(ctx.region, params["region"])
-        return base + params["offset"] * inside
+        return np.asarray(base + params["offset"] * inside, float)
 
 
 EFFECT_TYPES = {cls.id: cls for cls in (Offset, GainError, Drift, SensorLag, DeadTime,

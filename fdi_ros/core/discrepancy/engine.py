@@ -42,7 +42,7 @@ import numpy as np
 from scipy import stats
 
 from fdi_ros.core.discrepancy.context import ChannelContext
-from fdi_ros.core.discrepancy.effects import CATALOGUE, Effect, candidates
+from fdi_ros.core.discrepancy.effects import CATALOGUE, Effect, SensorError, candidates
 from fdi_ros.core.discrepancy.ties import tie_reason
 
 
@@ -81,22 +81,22 @@ class DiscrepancyConfig:
     sensor_effects: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
-        if self.n_blocks is not None and self.n_blocks < 4:
-            raise ValueError("n_blocks must be >= 4 for a paired test over blocks")
-        if self.n_folds is not None and self.n_folds < 2:
-            raise ValueError("n_folds must be >= 2")
-        if not 0 < self.alpha < 1:
-            raise ValueError("alpha must be in (0, 1)")
-        if self.max_findings < 1:
-            raise ValueError("max_findings must be >= 1")
+        rules = ((self.n_blocks is None or self.n_blocks >= 4,
+                  "n_blocks must be >= 4 for a paired test over blocks"),
+                 (self.n_folds is None or self.n_folds >= 2, "n_folds must be >= 2"),
+                 (0 < self.alpha < 1, "alpha must be in (0, 1)"),
+                 (self.max_findings >= 1, "max_findings must be >= 1"))
+        for ok, why in rules:
+            if not ok:
+                raise ValueError(why)
         bad = (set(self.effects) | set(self.sensor_effects or ())) - set(CATALOGUE)
         if bad:
             raise ValueError(f"unknown effects {sorted(bad)}; catalogue: {CATALOGUE}")
 
 
 @dataclass(frozen=True)
-class Candidate:
-    """Held-out score of one candidate extension in one greedy step."""
+class _Scored:
+    """What an explanation is and how it scored on the held-out blocks."""
 
     effect: str
     label: str
@@ -108,26 +108,22 @@ class Candidate:
     p_value: float
     p_adjusted: float
     p_dm: float
+
+
+@dataclass(frozen=True)
+class Candidate(_Scored):
+    """Held-out score of one candidate extension in one greedy step."""
+
     mse_blocks: np.ndarray = field(repr=False)
 
 
 @dataclass(frozen=True)
-class Finding:
+class Finding(_Scored):
     """One significant model deficiency, its extension and the held-out gain."""
 
     rank: int
-    effect: str
-    label: str
-    channel: str
     params: dict[str, Any]
-    rmse_before: float
-    rmse_after: float
-    gain_pct: float
-    p_value: float
-    p_adjusted: float
-    p_dm: float
     significant: bool
-    n_params: int
     step: int
     alternatives: list[dict[str, Any]] = field(default_factory=list)
     view: str = "samples"  # "samples", "segment means" or "crank-resolved"
@@ -171,9 +167,10 @@ class DiscrepancyResult:
                 "test": "one-sided Wilcoxon signed-rank test over the blockwise held-out MSE "
                         "differences (blocks as "
                         "the independent units, samples within a block are correlated), "
-                        "Bonferroni over candidates and channels; p_dm: Diebold-Mariano test "
-                        "on the per-sample loss differential with a Newey-West variance, for "
-                        "reference",
+                        "Bonferroni over the channels' own candidates and the channels "
+                        "(input-sensor errors compete for the attribution); p_dm: "
+                        "Diebold-Mariano test on the per-sample loss differential with a "
+                        "Newey-West variance, for reference",
                 "alpha": self.config.alpha,
                 "min_gain_pct": self.config.min_gain_pct,
             },
@@ -317,8 +314,10 @@ def _one_se_choice(scored: list[tuple[Effect, Candidate]], alpha: float
 
     Nested alternatives compete on parsimony (an always-on gain error vs the same gain
     switching on at some time), and a time-varying best (drift, piecewise in time) yields to a
-    dependence on a measured column within one standard error; other effects with different
-    physics compete on held-out error.
+    dependence on a measured column within one standard error; an input sensor's error yields
+    to the same kind of error of the channel within one standard error, and a dependence on an
+    input's slope to that input's lag or dead time unless it is significantly worse; other
+    effects with different physics compete on held-out error.
     """
     best = min(scored, key=lambda ec: np.nanmean(ec[1].mse_blocks))
     tol = 1e-3 * float(np.nanmean(best[1].mse_blocks))
@@ -336,6 +335,18 @@ def _one_se_choice(scored: list[tuple[Effect, Candidate]], alpha: float
                and eff.id == best[0].id and c.p_adjusted < alpha and within_one_se(c)]
         if own:
             best = min(own, key=lambda ec: np.nanmean(ec[1].mse_blocks))
+    column = str(getattr(best[0], "column", ""))
+    if best[0].id == "input_dependence" and column.startswith("d/dt "):
+        # the residual following the slope of one of the model's inputs is what a lag or
+        # dead time of that sensor produces (to first order the same explanation): unless it
+        # is significantly worse, the sensor's timing error is named (as many parameters, and
+        # it predicts through the model)
+        timing = [(eff, c) for eff, c in scored
+                  if getattr(eff, "sensor", "") == column[5:]
+                  and eff.id in ("sensor_lag", "dead_time") and c.p_adjusted < alpha
+                  and paired_p(c.mse_blocks, best[1].mse_blocks) >= alpha]
+        if timing:
+            best = min(timing, key=lambda ec: np.nanmean(ec[1].mse_blocks))
     if _time_varying(best[0]):
         # a change over time is accepted only if no measured column explains the same
         # residual: a dependence on a measured signal (few parameters, predicts new data)
@@ -585,7 +596,7 @@ def _grow_chain(c: _Channel, cfg: DiscrepancyConfig, n_channels: int,
 
 
 MIN_GAIN_EFFECT = 0.01  # relevance floor of a gain error: |gain - 1| [1]
-MIN_EFFECT_REL = 0.01  # relevance floor of any effect: RMS change / RMS level of the channel
+MIN_EFFECT_REL = 0.01  # relevance floor of any effect: its error / RMS of the reading
 
 
 def _gain_magnitude(params: dict[str, Any]) -> float:
@@ -612,21 +623,37 @@ def _refit(c: _Channel, chain: list[Effect], findings: list[Finding], info: dict
     # A gain error below the relevance floor (every piece within MIN_GAIN_EFFECT of 1, the
     # order of a sensor's own accuracy class) is a real but negligible wander of the model,
     # not a deficiency worth naming: it stays in the candidate table, not among the findings.
-    # Any other effect is held to the same floor by its size: the RMS change it makes to the
-    # prediction must reach MIN_EFFECT_REL of the channel's RMS level (a sensor's accuracy
-    # class, 1 % of reading); smaller effects are real but negligible wanders of the model.
+    # Any other effect is held to the same floor by its size: the error it puts on a reading
+    # (the channel's, or an input sensor's) must reach MIN_EFFECT_REL of that reading's RMS
+    # (a sensor's accuracy class, 1 % of reading) in RMS over the record, a drift by what it
+    # accumulates, an input sensor's lag or dead time against how much the reading moves;
+    # smaller effects are real but negligible wanders of the model.
     level = float(np.sqrt(np.mean(ctx.y[c.ok] ** 2)))
     pred, size = ctx.yhat, []
     for eff, p in fitted:
         nxt = eff.apply(ctx, pred, p)
-        d = (nxt - pred)[c.ok]
-        size.append(float(np.sqrt(np.nanmean(d ** 2))) if d.size else 0.0)
+        if isinstance(eff, SensorError):
+            e, x = eff.error(ctx, p), ctx.sensor_reading(eff.sensor)
+            ok = c.ok & np.isfinite(e) & np.isfinite(x)
+            # a lag or dead time errs only while the reading moves: judged against how much
+            # it moves (its standard deviation), the other errors against the reading
+            timing = eff.kind in ("sensor_lag", "dead_time")
+            ref = (float(np.std(x[ok]) if timing else np.sqrt(np.mean(x[ok] ** 2)))
+                   if ok.any() else 0.0)
+            e = e[ok]
+        else:
+            e, ref = (nxt - pred)[c.ok], level
+            e = e[np.isfinite(e)]
+        mag = 0.0
+        if e.size:
+            mag = float(np.max(np.abs(e)) if eff.id == "drift" else np.sqrt(np.mean(e ** 2)))
+        size.append(mag / ref if ref > 0 else 0.0)
         pred = nxt
     findings[:] = [f for f in findings
                    if not (f.model_channel == c.name
                            and ((f.effect == "gain_error"
                                  and _gain_magnitude(f.params) < MIN_GAIN_EFFECT)
-                                or size[f.step - 1] < MIN_EFFECT_REL * level))]
+                                or size[f.step - 1] < MIN_EFFECT_REL))]
     final = apply_chain(ctx, fitted)
     info["rmse_extended_in_sample"] = float(np.sqrt(np.mean((ctx.y - final)[c.ok] ** 2)))
     return fitted

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from fdi_ros.core.discrepancy.context import build_contexts
-from fdi_ros.core.discrepancy.engine import DiscrepancyResult
+from fdi_ros.core.discrepancy.engine import Candidate, DiscrepancyResult
 from fdi_ros.core.discrepancy.model import ExtendedModel
 from fdi_ros.core.measured import Measured, segment_means
 
@@ -29,7 +29,7 @@ def _save(fig: Any, out: Path, name: str, caption: str, figs: list[tuple[str, st
     plt.close(fig)
     figs.append((name, caption))
 
-def _fmt_params(p: dict) -> str:
+def _fmt_params(p: dict[str, Any]) -> str:
     out = []
     for k, v in p.items():
         if k in ("a", "b", "center", "scale", "sq_mean", "t_ref_s", "cd", "cda_mm2") or v is None:
@@ -46,7 +46,8 @@ def _fmt_params(p: dict) -> str:
     return "; ".join(out)
 
 
-def error_map(region: dict[str, np.ndarray], resid: np.ndarray, bins: int = 8):
+def error_map(region: dict[str, np.ndarray], resid: np.ndarray, bins: int = 8
+              ) -> tuple[list[str], list[np.ndarray], np.ndarray, np.ndarray]:
     """Mean residual per (quantile) bin of the first two region axes: (edges, mean, count)."""
     names = list(region)[:2]
     ok = np.isfinite(resid)
@@ -81,7 +82,7 @@ def order_spectrum(alpha: np.ndarray, resid: np.ndarray, orders: np.ndarray) -> 
     return np.array(amp)
 
 
-def runner_up(result: DiscrepancyResult):
+def runner_up(result: DiscrepancyResult) -> tuple[Candidate, Candidate] | None:
     """(top candidate, runner-up candidate) of the top finding's step 1, or None.
 
     The runner-up is the best candidate of another effect on the same channel (a variant of
@@ -102,7 +103,8 @@ def runner_up(result: DiscrepancyResult):
     return first, second
 
 
-def _evidence_figure(plt, out: Path, result: DiscrepancyResult):
+def _evidence_figure(plt: Any, out: Path, result: DiscrepancyResult
+                     ) -> tuple[str, str] | None:
     pair = runner_up(result)
     if pair is None:
         return None
@@ -113,7 +115,7 @@ def _evidence_figure(plt, out: Path, result: DiscrepancyResult):
                f"({a.gain_pct:.1f} %, p_adj {a.p_adjusted:.2g})")
     ax[0].plot(blocks, np.sqrt(b.mse_blocks), "s-", ms=3, label=f"runner-up: {b.label} "
                f"({b.gain_pct:.1f} %, p_adj {b.p_adjusted:.2g})")
-    ax[0].set_ylabel(f"held-out RMSE ({a.channel})")
+    ax[0].set_ylabel("held-out RMSE of the residual")
     ax[0].legend(fontsize=8)
     d = b.mse_blocks - a.mse_blocks
     ax[1].bar(blocks, d, color=["C2" if v > 0 else "C3" for v in d])
@@ -129,7 +131,7 @@ def _evidence_figure(plt, out: Path, result: DiscrepancyResult):
             f"(green: the top finding predicts the block better)")
 
 
-def write_report(out_dir: str | Path, data: Measured, baseline, extended: ExtendedModel,
+def write_report(out_dir: str | Path, data: Measured, baseline: Any, extended: ExtendedModel,
                  result: DiscrepancyResult, *, title: str = "Discrepancy analysis") -> Path:
     """Write ``index.md`` and the PNGs into ``out_dir``; returns the Markdown path."""
     import matplotlib
@@ -222,15 +224,16 @@ def write_report(out_dir: str | Path, data: Measured, baseline, extended: Extend
             _save(fig, out, f"correlation_{ch}.png",
                   "Candidate explanations: correlation of the residual", figs)
     # 4. spectrum: by crank-angle order, or by frequency
-    if crank:
+    if crank and data.alpha is not None:
+        alpha = data.alpha
         cctx = build_contexts(data, baseline)
         pred = extended.predict(data)
-        orders = np.arange(0.5, min(8.0, 0.45 * 180.0 / float(np.median(np.diff(data.alpha))))
+        orders = np.arange(0.5, min(8.0, 0.45 * 180.0 / float(np.median(np.diff(alpha))))
                            + 1e-9, 0.5)
         fig, ax = plt.subplots(figsize=(9, 4))
         for ch, ctx in cctx.items():
-            a0 = order_spectrum(data.alpha, ctx.y - ctx.yhat, orders)
-            a1 = order_spectrum(data.alpha, ctx.y - pred[ch], orders)
+            a0 = order_spectrum(alpha, ctx.y - ctx.yhat, orders)
+            a1 = order_spectrum(alpha, ctx.y - pred[ch], orders)
             ax.bar(orders - 0.1, a0, width=0.2, label=f"{ch} baseline residual")
             ax.bar(orders + 0.1, a1, width=0.2, label=f"{ch} extended")
         ax.set_xlabel("order (multiples of the 180 deg CA fundamental)")
@@ -295,7 +298,9 @@ def write_report(out_dir: str | Path, data: Measured, baseline, extended: Extend
                          f"{_fmt_params(a['params'])}.")
     lines += ["", "Held-out scheme: contiguous time blocks, each held out in turn (guard bands "
               "around it); significance: Wilcoxon signed-rank over the blockwise held-out MSE, "
-              "Bonferroni over all candidates.", ""]
+              "Bonferroni over the channel's own candidates (the errors of the model's input "
+              "sensors compete for the attribution); ties: explanations not significantly "
+              "worse than the top one.", ""]
     for name, cap in figs:
         lines += [f"## {cap}", "", f"![{cap}]({name})", ""]
     md = out / "index.md"

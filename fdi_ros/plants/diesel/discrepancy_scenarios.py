@@ -15,6 +15,7 @@ not applied here: it is a physical plant fault (``leak_ic_engine``) injected int
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -64,7 +65,7 @@ def plant_record(seed: int, *, duration_s: float = 60.0, dalpha_deg: float = 20.
                                               duration_s))
     for ev in faults:
         plant.inject(ev)
-    blocks = []
+    blocks: list[Any] = []
     while not blocks or blocks[-1].t[-1] < duration_s:
         blocks.append(plant.advance(2000))
     t = np.concatenate([b.t for b in blocks])

@@ -56,9 +56,9 @@ def simulate_features(scenario, *, seed: int, progress: bool = False, faults=Non
     return (features, fault truth events)."""
     import dataclasses
 
-    from fdi_ros.plants.diesel.scenario import load_scenario, simulate
+    from fdi_ros.plants.diesel.scenario import Scenario, load_scenario, simulate
 
-    sc = load_scenario(scenario)
+    sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
     if faults is not None:
         sc = dataclasses.replace(sc, faults=tuple(faults))
     if duration_s is not None:
@@ -69,17 +69,25 @@ def simulate_features(scenario, *, seed: int, progress: bool = False, faults=Non
     return sim.features.to_features(), list(sim.faults)
 
 
-def load_features(source, *, seed: int = 0, mapping=None, cache: bool = True) -> list:
-    """Feature vectors of a scenario (simulated, cached in build/), bag or CSV."""
+def load_features(source, *, seed: int = 0, mapping=None, cache: bool = True,
+                  case: str | None = None) -> list:
+    """Feature vectors of a scenario (simulated, cached in build/; ``case``: one of the
+    file's cases), bag or CSV."""
     path = Path(source)
     if not path.exists():
         raise FileNotFoundError(f"no data at {path}")
     if path.suffix in (".yaml", ".yml"):
-        key = hashlib.sha1(path.read_bytes() + f"seed={seed}".encode()).hexdigest()[:16]
-        cached = CACHE_DIR / f"{path.stem}_{seed}_{key}.npz"
+        tag = f"seed={seed}" + (f",case={case}" if case is not None else "")
+        key = hashlib.sha1(path.read_bytes() + tag.encode()).hexdigest()[:16]
+        cached = CACHE_DIR / f"{case or path.stem}_{seed}_{key}.npz"
         if cache and cached.exists():
             return _read_cache(cached)
-        feats, _ = simulate_features(path, seed=seed)
+        if case is not None:
+            from fdi_ros.plants.diesel.scenario import load_scenario
+
+            feats, _ = simulate_features(load_scenario(path, case=case), seed=seed)
+        else:
+            feats, _ = simulate_features(path, seed=seed)
         if cache:
             _write_cache(cached, feats)
         return feats

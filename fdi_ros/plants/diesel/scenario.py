@@ -23,11 +23,18 @@ A scenario file (``config/scenarios/diesel_*.yaml``)::
 ``n_ramp_s``. ``egr_cmd`` and ``swirl_cmd`` are constants there. An optional
 ``fuel_limit: {n: [...], fuel: [...]}`` (full-load curve) caps the levels per speed.
 
+``inputs.ecu: {...}`` lets the engine ECU command the EGR valve and the swirl flaps from its
+maps of speed and load (:class:`~fdi_ros.plants.diesel.ecu.EcuSchedule`; ``{}`` = defaults)
+wherever a point has ``ecu: true`` (the default when the block is given); such a point's
+``egr_trim`` is added to the scheduled EGR command (closed-loop air-mass control).
+
 ``inputs.kind: zigzag`` ramps the speed slowly from ``n_min`` to ``n_max`` and back (each
 way ``n_ramp_s``) while the fuel follows a raised-cosine wave (period about
 ``fuel_period_s``, adjusted so that ``n_ramp_s / period = k + 1/4``) between ``fuel_min`` and
 the ``fuel_limit`` curve; the adjustment makes the way down pass each speed half a period
-away from the way up, so the two passes interleave in the (n, rho2) plane.
+away from the way up, so the two passes interleave in the (n, rho2) plane. ``passes:`` (a list
+of mappings with ``egr_cmd``, ``swirl_cmd``, ``ecu``, ``egr_trim`` (amplitude of a sinusoidal
+trim) and ``trim_period_s``) repeats the cycle once per entry, one after the other.
 
 Several cases can share one file under ``cases:`` (a list of partial scenarios merged over
 the top-level keys); :func:`load_scenario` takes ``case=`` to pick one, and
@@ -46,6 +53,7 @@ import numpy as np
 
 from fdi_ros.core.crank import SegmentTable
 from fdi_ros.core.types import FaultEvent, SampleBlock
+from fdi_ros.plants.diesel.ecu import EcuSchedule
 from fdi_ros.plants.diesel.plant import (
     CHANNELS,
     FAULT_IDS,
@@ -59,7 +67,7 @@ from fdi_ros.plants.diesel.plant import (
 
 _TOP_KEYS = {"name", "description", "seed", "duration_s", "dalpha_deg", "block_deg", "inputs",
              "faults", "cases", "params"}
-_POINT_KEYS = {"t", "n", "fuel", "torque", "egr_cmd", "swirl_cmd"}
+_POINT_KEYS = {"t", "n", "fuel", "torque", "egr_cmd", "swirl_cmd", "ecu", "egr_trim"}
 _FAULT_KEYS = {"t", "fault", "size", "unit", "profile", "ramp_s", "active"}
 
 
@@ -85,9 +93,22 @@ class Scenario:
     hold: bool = False
     description: str = ""
     params: DieselParams = field(default_factory=DieselParams)
+    ecu: EcuSchedule | None = None
+    ecu_on: np.ndarray | None = None
+    egr_trim: np.ndarray | None = None
 
     def inputs_at(self, t: float) -> tuple[float, float, float, float]:
-        """(n [rpm], fuel [mg/stroke], egr_cmd, swirl_cmd) at time t [s]."""
+        """(n [rpm], fuel [mg/stroke], egr_cmd, swirl_cmd) at time t [s]; the ECU's schedule
+        commands EGR and swirl where it is on."""
+        n, fuel, egr, swirl = self._profile_at(t)
+        if self.ecu is not None and self.ecu_on is not None and self.egr_trim is not None:
+            on = float(np.interp(t, self.t, self.ecu_on))
+            if on >= 0.5:
+                egr, swirl = self.ecu.commands(n, fuel, float(np.interp(t, self.t,
+                                                                        self.egr_trim)))
+        return n, fuel, egr, swirl
+
+    def _profile_at(self, t: float) -> tuple[float, float, float, float]:
         if self.hold:
             i = max(int(np.searchsorted(self.t, t, side="right")) - 1, 0)
             return (float(self.n[i]), float(self.fuel[i]), float(self.egr_cmd[i]),
@@ -127,6 +148,28 @@ def _sweep_points(spec: Mapping[str, Any]) -> list[dict]:
             pts.append(dict(t=t, n=n, fuel=f, egr_cmd=egr, swirl_cmd=swirl))
             t += hold
             pts.append(dict(t=t, n=n, fuel=f, egr_cmd=egr, swirl_cmd=swirl))
+    return pts
+
+
+def _zigzag_passes(spec: Mapping[str, Any]) -> list[dict]:
+    """The zigzag cycle once per entry of ``passes`` (actuator settings per pass)."""
+    passes = spec.get("passes")
+    if not passes:
+        return _zigzag_points(spec)
+    pts: list[dict] = []
+    for i, ps in enumerate(passes):
+        bad = set(ps) - {"egr_cmd", "swirl_cmd", "ecu", "egr_trim", "trim_period_s"}
+        if bad:
+            raise ValueError(f"zigzag pass {i}: unknown keys {sorted(bad)}")
+        one = _zigzag_points({**spec, "egr_cmd": ps.get("egr_cmd", 0.0),
+                              "swirl_cmd": ps.get("swirl_cmd", 0.0)})
+        t0 = pts[-1]["t"] + float(spec.get("step_s", 0.5)) if pts else 0.0
+        amp, period = float(ps.get("egr_trim", 0.0)), float(ps.get("trim_period_s", 23.0))
+        for p in one:
+            p["t"] += t0
+            p["ecu"] = bool(ps.get("ecu", False))
+            p["egr_trim"] = amp * float(np.sin(2.0 * np.pi * p["t"] / period))
+        pts.extend(one)
     return pts
 
 
@@ -170,13 +213,15 @@ def _parse(d: Mapping[str, Any], where: str) -> Scenario:
     elif kind == "sweep":
         pts = _sweep_points(inp)
     elif kind == "zigzag":
-        pts = _zigzag_points(inp)
+        pts = _zigzag_passes(inp)
     else:
         raise ValueError(f"{where}: inputs.kind must be 'points', 'sweep' or 'zigzag', "
                          f"not {kind!r}")
     if not pts:
         raise ValueError(f"{where}: the input profile has no points")
-    cols: dict[str, list[float]] = {k: [] for k in ("t", "n", "fuel", "egr_cmd", "swirl_cmd")}
+    ecu = EcuSchedule.from_dict(inp["ecu"]) if inp.get("ecu") is not None else None
+    cols: dict[str, list[float]] = {k: [] for k in ("t", "n", "fuel", "egr_cmd", "swirl_cmd",
+                                                    "ecu", "egr_trim")}
     for i, p in enumerate(pts):
         bad = set(p) - _POINT_KEYS
         if bad:
@@ -193,6 +238,10 @@ def _parse(d: Mapping[str, Any], where: str) -> Scenario:
         cols["fuel"].append(fuel)
         cols["egr_cmd"].append(float(p.get("egr_cmd", 0.0)))
         cols["swirl_cmd"].append(float(p.get("swirl_cmd", 0.0)))
+        cols["ecu"].append(float(bool(p.get("ecu", ecu is not None))))
+        cols["egr_trim"].append(float(p.get("egr_trim", 0.0)))
+    if ecu is None and any(cols["ecu"]):
+        raise ValueError(f"{where}: points with 'ecu: true' need an 'inputs.ecu' schedule")
     arr = {k: np.asarray(v, dtype=float) for k, v in cols.items()}
     if not np.all(np.isfinite(np.concatenate(list(arr.values())))):
         raise ValueError(f"{where}: input points must be finite numbers")
@@ -226,7 +275,8 @@ def _parse(d: Mapping[str, Any], where: str) -> Scenario:
                   egr_cmd=arr["egr_cmd"], swirl_cmd=arr["swirl_cmd"], faults=tuple(faults),
                   seed=int(d.get("seed", 0)), duration_s=duration, dalpha_deg=dalpha,
                   block_deg=block_deg, hold=bool(inp.get("hold", False)),
-                  description=str(d.get("description", "")), params=params)
+                  description=str(d.get("description", "")), params=params, ecu=ecu,
+                  ecu_on=arr["ecu"], egr_trim=arr["egr_trim"])
     # the plant validates sizes and units when the events are injected: do it now
     probe = DieselIntakePlant(params=params)
     for ev in sc.faults:
@@ -384,5 +434,18 @@ def _concat_tables(tables):
                         values=np.concatenate([t.values for t in tabs]))
 
 
+def simulate_to_bag(scenario, path, *, seed: int | None = None) -> None:
+    """A scenario (Scenario, YAML path or mapping) into a new bag: its sensor blocks and its
+    fault ground truth (``fdi-ros simulate --out`` without the options)."""
+    from fdi_ros import bag
+
+    sc = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+    with bag.BagWriter(path) as w:
+        for block, _ in iter_simulate(sc, seed=seed):
+            w.write_block(block)
+        for ev in sc.faults:
+            w.write_fault(ev)
+
+
 __all__ = ["Scenario", "SimResult", "load_scenario", "load_cases", "simulate", "iter_simulate",
-           "CHANNELS", "UNITS"]
+           "simulate_to_bag", "CHANNELS", "UNITS"]

@@ -41,6 +41,7 @@ from fdi_ros.core.symptoms import (
 )
 from fdi_ros.core.symptoms import calibrate_thresholds as _calibrate
 from fdi_ros.core.types import FeatureVector, ResidualVector
+from fdi_ros.plants.diesel.ecu import ACTUATOR_SETTLE_S, GATED_ACTUATORS, actuator_status
 from fdi_ros.plants.diesel.reference import ReferenceModelSet, wrap_phase
 
 if TYPE_CHECKING:
@@ -194,6 +195,7 @@ class QuasiStationarity:
         self._lag = config.rate_lag if config is not None else 2
         self._hist: deque[tuple[float, float, float]] = deque(maxlen=self._lag + 1)
         self._inputs: deque[tuple[float, float, float]] = deque()  # (t, n, fuel), settle_s
+        self._acts: deque[tuple[float, dict[str, float]]] = deque()  # ACTUATOR_SETTLE_S
 
     @property
     def active(self) -> bool:
@@ -203,6 +205,7 @@ class QuasiStationarity:
     def reset(self) -> None:
         self._hist.clear()
         self._inputs.clear()
+        self._acts.clear()
 
     def rates(self, fv: FeatureVector) -> tuple[float, float]:
         """Push one feature vector; (dn/dt [rpm/s], dp2/dt [Pa/s]) or NaNs while settling."""
@@ -217,9 +220,12 @@ class QuasiStationarity:
         self._hist.append((t, n, p2))
         fuel = fv.get("fuel") if "fuel" in fv.names else float("nan")
         self._inputs.append((t, n, fuel))
+        self._acts.append((t, {k: fv.get(k) for k in GATED_ACTUATORS if k in fv.names}))
         if self.config is not None:
             while self._inputs and self._inputs[0][0] < t - self.config.settle_s:
                 self._inputs.popleft()
+        while self._acts and self._acts[0][0] < t - ACTUATOR_SETTLE_S:
+            self._acts.popleft()
         if len(self._hist) < self._lag + 1:
             return float("nan"), float("nan")
         t0, n0, p0 = self._hist[0]
@@ -240,6 +246,15 @@ class QuasiStationarity:
         df = float(np.ptp(arr[:, 2])) if np.all(np.isfinite(arr[:, 2])) else 0.0
         return dn <= c.max_speed_change and df <= c.max_fuel_change, dn, df
 
+    def actuators_moved(self) -> str:
+        """The "not valid" status if an actuator command moved within ACTUATOR_SETTLE_S."""
+        moved = {}
+        for k in GATED_ACTUATORS:
+            v = [a[k] for _, a in self._acts if k in a and np.isfinite(a[k])]
+            if v:
+                moved[k] = float(max(v) - min(v))
+        return actuator_status(moved)
+
     def apply(self, fv: FeatureVector, r: np.ndarray, valid: bool,
               status: str) -> tuple[np.ndarray, bool, str]:
         """Correct r_eta and gate one segment (r from :func:`parity_residuals`)."""
@@ -255,6 +270,9 @@ class QuasiStationarity:
         if not ok:
             return r, False, (f"not valid here: transient inputs (speed moved {dn:.0f} rpm, "
                               f"fuel {df:.1f} mg within {c.settle_s:g} s)")
+        moved = self.actuators_moved()
+        if moved:
+            return r, False, moved
         r = r.copy()
         j = c.names.index("r_eta") if "r_eta" in c.names else None
         if j is not None and c.storage_coeff:
@@ -310,7 +328,21 @@ def _z(r: np.ndarray, cfg: SymptomConfig | None) -> np.ndarray:
     return (r - np.asarray(cfg.centre)) / np.asarray(cfg.threshold)
 
 
-class ReferenceResidualModel:
+class _Batchable:
+    """Offline: a bank model over a whole recorded stream (:mod:`fdi_ros.plants.diesel.batch`,
+    equal to the segment-by-segment path)."""
+
+    def batch(self, features: Sequence[FeatureVector], shared: dict) -> Any:
+        """This model over one recorded stream, run by run with array operations (offline
+        diagnosis; :mod:`fdi_ros.plants.diesel.batch`)."""
+        from fdi_ros.plants.diesel.batch import Parity, batched
+
+        return batched(self, features, shared,
+                       Parity(parity_residuals, residual_vector, RESIDUALS, RESIDUAL_UNITS,
+                              FEATURES, model_features, region_status))
+
+
+class ReferenceResidualModel(_Batchable):
     """The nominal bank model: parity residuals against the five reference models.
 
     ``norm`` = RMS of the residuals centred and divided by their thresholds (from the
@@ -346,7 +378,7 @@ class ReferenceResidualModel:
         return ResidualVector(**{**rv.__dict__, "norm": block_rms(np.array(self._zbuf))})
 
 
-class FaultHypothesisResidualModel:
+class FaultHypothesisResidualModel(_Batchable):
     """A bank model for one fault: "the nominal residuals minus what this fault explains".
 
     The fault's effect on the (centred, normalised) residuals per unit fault size is a map of

@@ -12,7 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -88,6 +88,13 @@ class DieselPreprocessor:
     def push(self, block: SampleBlock) -> list[FeatureVector]:
         return self.seg.push(block)
 
+    def push_many(self, blocks: Sequence[SampleBlock]) -> list[FeatureVector]:
+        """The feature vectors of consecutive blocks, segmented in one pass (offline): the
+        same as pushing them one by one, since the segmenter spans block boundaries."""
+        from fdi_ros.core.crank import join_blocks
+
+        return self.seg.push_table(join_blocks(blocks)).to_features()
+
     def mark_gap(self) -> None:
         pass
 
@@ -130,14 +137,20 @@ def _hypothesis_current(spec: dict) -> bool:
 
 
 def _reference_current(d: Path) -> bool:
-    """The reference model set exists and carries its validity region (sets identified before
-    the region was stored with them are rebuilt)."""
+    """The reference model set exists and carries its validity region with today's actuator
+    tolerances (sets identified before are rebuilt)."""
+    from fdi_ros.plants.diesel.reference import ACTUATOR_TOL
+
     if not all((d / f).exists() for f in REFERENCE_FILES):
         return False
     try:
-        return json.loads((d / REFERENCE_FILES[0]).read_text()).get("validity") is not None
+        validity = json.loads((d / REFERENCE_FILES[0]).read_text()).get("validity")
     except ValueError:
         return False
+    if not validity:
+        return False
+    tol = {r.get("name"): r.get("tol") for r in validity.get("ranges", [])}
+    return all(tol.get(k, v) == v for k, v in ACTUATOR_TOL.items())
 
 
 def _missing(cfg: GraphConfig) -> list[tuple[str, dict]]:

@@ -1,0 +1,190 @@
+"""How much of a drive the diesel diagnosis watches: valid segments per operating region, the
+reasons for the rest, false symptoms, and a map of coverage over speed and load.
+
+On-board diagnosis is judged by the share of real driving it watches without false alarms (OBD
+rules set a minimum in-use monitor performance ratio). The regions are those of the ECU's
+actuator maps: EGR open with the swirl flaps closed (low speed, part load), EGR open with the
+flaps open (part load), EGR closed (full load, high speed) and overrun (no torque).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["REGIONS", "coverage_figure", "coverage_report", "fault_case_report", "observable",
+           "realistic_drive", "reason_class", "region_of"]
+
+REGIONS = ("egr_open_flaps_closed", "egr_open_flaps_open", "egr_closed", "overrun")
+
+
+def region_of(fv) -> str:
+    """Operating region of one segment from its speed, fuel and actuator commands."""
+    names = fv.names
+    egr = fv.get("egr_cmd") if "egr_cmd" in names else 0.0
+    swirl = fv.get("swirl_cmd") if "swirl_cmd" in names else 0.0
+    fuel = fv.get("fuel") if "fuel" in names else np.inf
+    if fuel < 4.0:
+        return "overrun"
+    if egr > 0.002:   # the EGR valve's tolerance of the validity (a 1 mm hole)
+        return "egr_open_flaps_closed" if swirl > 0.5 else "egr_open_flaps_open"
+    return "egr_closed"
+
+
+def reason_class(status: str) -> str:
+    """The kind of a "not valid" status (the numbers stripped)."""
+    s = status.lower()
+    for key, label in (("transient", "transient inputs"), ("settling", "settling"),
+                       ("egr_cmd", "EGR command outside the identified region"),
+                       ("swirl_cmd", "swirl command outside the identified region"),
+                       ("operating point", "(n, rho2) outside the identified coverage"),
+                       ("n = ", "speed outside the identified range"),
+                       ("rho2 = ", "boost density outside the identified range"),
+                       ("feature", "features not valid")):
+        if key in s:
+            return label
+    return status or "not valid"
+
+
+def coverage_report(features: Sequence, states: Sequence) -> dict[str, Any]:
+    """Valid share of the segments per region, the reasons of the invalid ones and the false
+    symptom count (``states``: the nominal model's SymptomStates, fault-free data)."""
+    regions = [region_of(fv) for fv in features]
+    valid = np.array([s.valid for s in states], dtype=bool)
+    sym = np.array([s.valid and any(s.levels) for s in states], dtype=bool)
+    out: dict[str, Any] = {"segments": len(states), "valid_segments": int(valid.sum()),
+                           "coverage": round(float(valid.mean()), 4) if len(states) else None,
+                           "false_symptom_segments": int(sym.sum()),
+                           "false_symptom_onsets": int(np.sum(sym[1:] & ~sym[:-1])
+                                                       + (sym[0] if sym.size else 0)),
+                           "regions": {}}
+    for r in REGIONS:
+        idx = [i for i, g in enumerate(regions) if g == r]
+        if not idx:
+            continue
+        out["regions"][r] = {"segments": len(idx),
+                             "share_of_drive": round(len(idx) / len(regions), 4),
+                             "coverage": round(float(valid[idx].mean()), 4),
+                             "false_symptom_segments": int(sym[idx].sum())}
+    why = Counter(reason_class(s.status) for s in states if not s.valid)
+    out["not_valid_reasons"] = dict(why.most_common())
+    return out
+
+
+def coverage_figure(features: Sequence, states: Sequence, path: str | Path, *,
+                    title: str = "") -> Path:
+    """Share of valid segments over the speed-torque map (bins of 250 rpm x 2 mg fuel), with
+    the segments' count as the marker size."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = np.array([fv.get("n") for fv in features])
+    fuel = np.array([fv.get("fuel") if "fuel" in fv.names else np.nan for fv in features])
+    valid = np.array([s.valid for s in states], dtype=float)
+    nb = np.arange(750.0, 5750.0, 250.0)
+    fb = np.arange(0.0, 48.0, 2.0)
+    cnt, _, _ = np.histogram2d(n, fuel, bins=(nb, fb))
+    ok, _, _ = np.histogram2d(n, fuel, bins=(nb, fb), weights=valid)
+    share = np.where(cnt > 0, ok / np.maximum(cnt, 1), np.nan)
+    fig, ax = plt.subplots(figsize=(8, 5))
+    mesh = ax.pcolormesh(nb, fb, share.T, cmap="RdYlGn", vmin=0.0, vmax=1.0, shading="flat")
+    fig.colorbar(mesh, ax=ax, label="share of segments with a valid diagnosis")
+    ax.set_xlabel("engine speed n [rpm]")
+    ax.set_ylabel("injected fuel [mg/stroke] (load)")
+    ax.set_title(title or f"diagnosis coverage: {valid.mean():.1%} of {len(states)} segments")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+REALISTIC_DRIVE = "config/scenarios/diesel_realistic_drive.yaml"
+
+
+def observable(fault: str, size: float, fv) -> bool:
+    """Whether the fault can change anything at this segment's actuator commands: a valve stuck
+    at ``size`` while the ECU opens it further, or flaps stuck closed while the ECU closes them,
+    leave the plant as it is."""
+    names = fv.names
+    if fault == "egr_stuck_open" and "egr_cmd" in names:
+        return bool(fv.get("egr_cmd") < size)
+    if fault == "swirl_flap_closed" and "swirl_cmd" in names:
+        return bool(fv.get("swirl_cmd") < min(size, 1.0) - 0.02)
+    return True
+
+
+def fault_case_report(steps: Sequence, features: Sequence, fault: str, onset: float,
+                      *, max_segments: int = 5, size: float = 1.0) -> dict[str, Any]:
+    """Detection and isolation of one fault opened at ``onset`` [s] (``steps``: the
+    diagnoser's steps over ``features``). The delay counts the segments with a valid diagnosis
+    from the onset on (a segment the models do not cover cannot detect anything)."""
+    k0 = next((i for i, fv in enumerate(features) if fv.t_end > onset), len(features))
+    before = sum(1 for _, _, s in steps[:k0] if s.symptoms.valid and any(s.symptoms.levels))
+    valid_seen, det = 0, None
+    for i in range(k0, len(steps)):
+        s = steps[i][2].symptoms
+        if s.valid:
+            valid_seen += 1
+            if any(s.levels):
+                det = i
+                break
+    final = steps[-1][2].diagnosis if steps else None
+    iso = list(final.isolated_faults) if final else []
+    first_valid = next((i for i in range(k0, len(steps)) if steps[i][2].symptoms.valid), None)
+    return {"fault": fault, "onset_s": round(onset, 2),
+            "false_symptom_segments_before": before,
+            "first_valid_after_onset_s": None if first_valid is None else
+            round(features[first_valid].t_end - onset, 3),
+            "detected": det is not None,
+            "delay_valid_segments": valid_seen if det is not None else None,
+            "delay_s": None if det is None else round(features[det].t_end - onset, 3),
+            "within_segments": det is not None and valid_seen <= max_segments,
+            "signature": steps[det][2].symptoms.signature if det is not None else None,
+            "isolated": iso, "isolated_correctly": iso == [fault],
+            "region_at_onset": region_of(features[min(k0, len(features) - 1)]),
+            "observable_at_onset": observable(fault, size, features[min(k0, len(features) - 1)])}
+
+
+def realistic_drive(config, *, seed: int = 202, progress: bool = False,
+                    figures: str | Path | None = None, before_s: float = 20.0,
+                    after_s: float = 40.0) -> dict[str, Any]:
+    """The realistic drive diagnosed by the graph's bank (``config``: the graph configuration):
+    coverage per region and false symptoms on the fault-free drive, and each fault case in a
+    window around its onset (``before_s`` .. ``after_s``)."""
+    from fdi_ros.core.diagnoser import diagnose_offline
+    from fdi_ros.core.graphconfig import load_graph_config
+    from fdi_ros.plants.diesel.drive import window
+    from fdi_ros.plants.diesel.identify import load_features, simulate_features
+    from fdi_ros.plants.diesel.scenario import load_cases
+
+    cfg = load_graph_config(config)
+    path = cfg.resolve(REALISTIC_DRIVE)
+    cases = load_cases(path)
+    feats = load_features(path, seed=seed, case=cases[0].name)
+    steps = diagnose_offline(cfg, feats)
+    states = [s.symptoms for _, _, s in steps]
+    out = coverage_report(feats, states)
+    out["minutes"] = round((feats[-1].t_end - feats[0].t_start) / 60.0, 2)
+    out["isolations"] = sorted({f for _, _, s in steps for f in s.diagnosis.isolated_faults})
+    if figures:
+        out["figure"] = str(coverage_figure(feats, states, Path(figures) / "coverage_map.png",
+                                            title="realistic drive: share of segments with a "
+                                                  f"valid diagnosis ({out['coverage']:.1%})"))
+    runs = []
+    for i, sc in enumerate(cases[1:]):
+        ev = sc.faults[0]
+        t0 = max(0.0, ev.t - before_s)
+        fw, _ = simulate_features(window(sc, t0, ev.t + after_s), seed=seed + 1 + i,
+                                  progress=progress)
+        runs.append({**fault_case_report(diagnose_offline(cfg, fw), fw, ev.fault, ev.t - t0,
+                                         size=ev.size), "onset_drive_s": ev.t})
+    out["faults"] = runs
+    return out

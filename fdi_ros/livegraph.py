@@ -86,12 +86,14 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
              echo: Callable[[str], None] | None = None, watch_features: bool = False,
              watch_blocks: bool = False,
              log: Callable[[str], None] = lambda s: None,
-             stop_after_isolation_s: float | None = None) -> tuple[LiveRun, GraphWatcher]:
+             stop_after_isolation_s: float | None = None,
+             hosting: Any = None) -> tuple[LiveRun, GraphWatcher]:
     """Launch, bring the bank on line, start the plant (or replayer), watch until the source
     finishes (or ``stop_after_isolation_s`` plant seconds after an isolation), stop.
 
     ``during(graph, watcher, run)`` is called on every watch iteration (tests kill nodes
-    from it). Returns the run summary and the (closed) watcher with everything it saw.
+    from it). ``hosting``: how the model nodes are hosted (:class:`fdi_ros.launcher.Graph`).
+    Returns the run summary and the (closed) watcher with everything it saw.
     """
     readers = 1 + (record is not None) + bool(watch_blocks)
     # the bank is on line before the plant starts (checked below), so no start delay
@@ -101,7 +103,8 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
                                               "min_subscribers": readers}}
     if scenario is not None:
         over["fdi_plant"]["scenario"] = str(Path(scenario).resolve())
-    graph = Graph(config, overrides=over, record=record, replay=replay, echo=echo)
+    graph = Graph(config, overrides=over, record=record, replay=replay, echo=echo,
+                  hosting=hosting)
     w = GraphWatcher(watch_features=watch_features, watch_blocks=watch_blocks)
     run = LiveRun(bag=str(record) if record else None)
     bank = [e.id for e in graph.cfg.bank]

@@ -202,22 +202,23 @@ class Graph:
 
     def stop(self, timeout: float = 15.0) -> dict[str, int | None]:
         """SIGINT every node (the recorder last, so it sees everything), wait, kill leftovers."""
-        procs = [n for n in self.nodes if n.proc is not None and n.proc.poll() is None]
-        last = [n for n in procs if n.module == "recorder_node"]
-        first = [n for n in procs if n.module != "recorder_node"]
+        procs = [(n.module, p) for n in self.nodes if (p := n.proc) is not None
+                 and p.poll() is None]
+        last = [p for module, p in procs if module == "recorder_node"]
+        first = [p for module, p in procs if module != "recorder_node"]
         for group in (first, last):
-            for n in group:
+            for p in group:
                 try:
-                    os.killpg(n.proc.pid, signal.SIGINT)
+                    os.killpg(p.pid, signal.SIGINT)
                 except ProcessLookupError:
                     pass
             deadline = time.monotonic() + timeout
-            for n in group:
+            for p in group:
                 try:
-                    n.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+                    p.wait(timeout=max(0.1, deadline - time.monotonic()))
                 except subprocess.TimeoutExpired:
-                    os.killpg(n.proc.pid, signal.SIGKILL)
-                    n.proc.wait()
+                    os.killpg(p.pid, signal.SIGKILL)
+                    p.wait()
         shutil.rmtree(self._tmp, ignore_errors=True)
         return {n.name: (n.proc.returncode if n.proc else None) for n in self.nodes}
 
@@ -340,7 +341,7 @@ def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
                     del due[name]
                     graph.start_node(name)
             if not started and not due and status == 0:
-                if not pending:
+                if not pending or watcher is None:
                     pass
                 elif watcher.lifecycle_state(pending[0], timeout=1.0) == "active":
                     pending.pop(0)

@@ -1,14 +1,13 @@
 """Expert supervisor node: the ROS edge of :class:`fdi_ros.core.supervision.SupervisorCore`.
-
 Parameters, subscriptions (features, residuals, sensor-block stamps, every bank node's
-``transition_event``), lifecycle service clients (async only), the fault-memory services
-``/fdi/get_faults`` and ``/fdi/clear_faults``, timers; messages become core events and core
-actions become service calls and publications. All decisions are in the core.
-"""
+``transition_event``), async lifecycle clients, the services ``/fdi/get_faults`` and
+``/fdi/clear_faults``, timers: messages become core events, core actions become service calls
+and publications. All decisions are in the core."""
 
 from __future__ import annotations
 
 import time
+from functools import partial
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -40,10 +39,8 @@ class SupervisorNode(Node):
         for e in self.core.cfg.bank:
             self.clients_[e.id] = (self.create_client(CS, f"/{e.node_name}/change_state"),
                                    self.create_client(GS, f"/{e.node_name}/get_state"))
-            self.create_subscription(
-                TransitionEvent, f"/{e.node_name}/transition_event",
-                lambda m, i=e.id: self._do(self.core.driver.on_transition_event(
-                    i, m.start_state.id, m.goal_state.id, time.monotonic())), 10)
+            self.create_subscription(TransitionEvent, f"/{e.node_name}/transition_event",
+                                     partial(self._on_transition, e.id), 10)
         self.pub = {"symptoms": self.create_publisher(Symptoms, "/fdi/symptoms", DATA_QOS),
                     "diagnosis": self.create_publisher(Diagnosis, "/fdi/diagnosis", DATA_QOS),
                     "ros": self.create_publisher(DiagnosticArray, "/diagnostics", 10)}
@@ -91,11 +88,15 @@ class SupervisorNode(Node):
     def _on_block(self, raw: bytes) -> None:  # only the stamp matters: no deserialisation
         self.core.block(msgs.raw_header_stamp(raw), time.monotonic())
 
-    def _do(self, actions: list) -> None:
+    def _on_transition(self, model_id: str, m: Any) -> None:
+        self._do(self.core.driver.on_transition_event(model_id, m.start_state.id,
+                                                      m.goal_state.id, time.monotonic()))
+
+    def _do(self, actions: list[object]) -> None:
         for a in actions:
             if isinstance(a, (ChangeState, GetState)):
                 cli = self.clients_[a.model_id][isinstance(a, GetState)]
-                req = cli.srv_type.Request()
+                req = (GS if isinstance(a, GetState) else CS).Request()
                 if isinstance(a, ChangeState):
                     req.transition.id = a.transition
                 cli.call_async(req).add_done_callback(lambda f, a=a: self._done(f, a))
@@ -138,8 +139,7 @@ class SupervisorNode(Node):
     def _publish_diagnostics(self) -> None:
         self.core.store.save(self.core.memory.records.values())  # last_t_s, once a second
         t = self.core.last.t if self.core.last is not None else 0.0
-        arr = msgs.diagnostic_array(self.core.entries(time.monotonic()), t)
-        self.pub["ros"].publish(arr)
+        self.pub["ros"].publish(msgs.diagnostic_array(self.core.entries(time.monotonic()), t))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -12,6 +12,7 @@ NODES = {
     "plant_node": "fdi_ros.nodes.plant_node:main",
     "preprocessor_node": "fdi_ros.nodes.preprocessor_node:main",
     "residual_node": "fdi_ros.nodes.residual_node:main",
+    "model_host_node": "fdi_ros.nodes.model_host_node:main",
     "supervisor_node": "fdi_ros.nodes.supervisor_node:main",
     "recorder_node": "fdi_ros.nodes.recorder_node:main",
     "replayer_node": "fdi_ros.nodes.replayer_node:main",

@@ -58,13 +58,17 @@ class GraphWatcher:
             lambda m: self.seen.truth.append((now(), msgs.to_fault_event(m))), LATCHED_QOS)
         sub(DiagnosticArray, "/diagnostics",
             lambda m: self.seen.diagnostics.append((now(), m)), 50)
+
+        def on_features(m: Any) -> None:
+            self.seen.features.append((now(), (int(m.index), float(m.t_end_s))))
+
+        def on_block(m: Any) -> None:
+            self.seen.blocks.append((now(), float(m.stamp_s[-1])))
+
         if watch_features:
-            sub(Features, "/fdi/features",
-                lambda m: self.seen.features.append((now(), (int(m.index), float(m.t_end_s)))),
-                DATA_QOS)
+            sub(Features, "/fdi/features", on_features, DATA_QOS)
         if watch_blocks:
-            sub(SensorBlock, "/fdi/sensor_block",
-                lambda m: self.seen.blocks.append((now(), float(m.stamp_s[-1]))), DATA_QOS)
+            sub(SensorBlock, "/fdi/sensor_block", on_block, DATA_QOS)
         if watch_end:
             from std_msgs.msg import Header
 

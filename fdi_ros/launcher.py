@@ -1,7 +1,10 @@
-"""Start a graph configuration as separate processes, one per node (as ``ros2 launch`` would).
+"""Start a graph configuration as separate processes (as ``ros2 launch`` would).
 
 The graph configuration (``config/<plant>.yaml``, see :mod:`fdi_ros.core.graphconfig`) names
-the node sections; the bank adds one residual-generator process per model. Each process gets
+the node sections; the bank adds one residual-generator node per model, hosted as the
+configuration's ``hosting`` (or the ``hosting`` argument) says: one process per model node
+(the default), or several model nodes per model-host process (``fdi_model_host_<k>``, see
+:mod:`fdi_ros.nodes.model_host_node`), each still a lifecycle node of its own. Each process gets
 a parameter file with only its own section (``--ros-args --params-file``) and its node name
 (``-r __node:=``). Output lines are prefixed with the node name. ``stop()`` sends SIGINT to
 all, waits, and kills what is left: Ctrl-C on ``fdi-ros launch`` shuts everything down cleanly.
@@ -9,6 +12,7 @@ all, waits, and kills what is left: Ctrl-C on ``fdi-ros launch`` shuts everythin
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import signal
@@ -25,7 +29,7 @@ from typing import IO, Any
 
 import yaml
 
-from fdi_ros.core.graphconfig import GraphConfig, load_graph_config
+from fdi_ros.core.graphconfig import GraphConfig, Hosting, load_graph_config
 
 # node name of the launcher's own watcher (diagnosis events, end of data, /diagnostics reports)
 WATCHER = "fdi_launch_watcher"
@@ -48,6 +52,7 @@ class NodeProcess:
     argv: list[str]
     proc: subprocess.Popen | None = None
     lines: list[str] = field(default_factory=list)
+    hosted: tuple[str, ...] = ()  # the node names a model host holds
 
 
 class Graph:
@@ -60,6 +65,8 @@ class Graph:
     record : bag directory to record every fdi topic into (adds the recorder node).
     replay : bag directory to replay instead of running the plant (adds the replayer node).
     echo : callable receiving every prefixed output line (default: print).
+    hosting : how the bank's model nodes are hosted (default: the configuration's ``hosting``;
+        a dict replaces only the fields it names, e.g. ``{"mode": "container"}``).
     extra_block_readers : readers of /fdi/sensor_block outside the graph (e.g. a watcher)
         that the source waits for too.
     watcher : node name of a watcher outside the graph (:class:`fdi_ros.graphwatch.
@@ -76,10 +83,15 @@ class Graph:
     def __init__(self, config: str | Path, *, overrides: dict[str, dict] | None = None,
                  record: str | Path | None = None, replay: str | Path | None = None,
                  echo: Callable[[str], None] | None = print,
-                 env: dict[str, str] | None = None, extra_block_readers: int = 0,
+                 env: dict[str, str] | None = None,
+                 hosting: Hosting | dict[str, Any] | None = None, extra_block_readers: int = 0,
                  watcher: str | None = None) -> None:
         self.config_path = Path(config).resolve()
         self.cfg: GraphConfig = load_graph_config(self.config_path)
+        if isinstance(hosting, dict):  # some fields over the configuration's
+            hosting = dataclasses.replace(self.cfg.hosting, **{
+                k: v for k, v in hosting.items() if v is not None})
+        self.hosting = hosting if hosting is not None else self.cfg.hosting
         self.echo = echo
         self.env = dict(os.environ if env is None else env)
         self.env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
@@ -122,27 +134,44 @@ class Graph:
         # bank models first: the supervisor finds their services when it starts; each gets the
         # common section `fdi_models` (e.g. use_sim_time) and its own model
         common = dict(self.cfg.node_params.get(MODELS_SECTION) or {})
+        pfiles = {}
         for e in self.cfg.bank:
             spec = self.cfg.resolve_spec(e.model)
             if not isinstance(spec, str):
                 spec = yaml.safe_dump(spec, default_flow_style=True, width=10_000).strip()
-            self._add(e.node_name, "residual_node", {**common, "model_id": e.id, "model": spec})
+            pfiles[e.node_name] = self._params_file(
+                e.node_name, {**common, "model_id": e.id, "model": spec})
+        for i_host, names in enumerate(self.hosting.groups(list(pfiles))):
+            if self.hosting.mode == "process":
+                self._add(names[0], "residual_node", pfile=pfiles[names[0]])
+                continue
+            host = [f"--node={n}={pfiles[n]}" for n in names]
+            self.nodes.append(NodeProcess(
+                name=f"fdi_model_host_{i_host}", module="model_host_node", hosted=tuple(names),
+                argv=[sys.executable, "-m", "fdi_ros.nodes.model_host_node",
+                      f"--executor={self.hosting.executor}", *host]))
         order = ["fdi_recorder", "fdi_supervisor", "fdi_preprocessor", "fdi_plant",
                  "fdi_replayer"]
         for name in order:
             if name in sections:
                 self._add(name, NODE_KINDS[name], sections[name])
 
-    def _add(self, name: str, module: str, params: dict[str, Any]) -> None:
+    def _params_file(self, name: str, params: dict[str, Any]) -> Path:
         pfile = self._tmp / f"{name}.yaml"
         pfile.write_text(yaml.safe_dump({name: {"ros__parameters": params}}))
+        return pfile
+
+    def _add(self, name: str, module: str, params: dict[str, Any] | None = None,
+             pfile: Path | None = None) -> None:
+        pfile = pfile if pfile is not None else self._params_file(name, params or {})
         argv = [sys.executable, "-m", f"fdi_ros.nodes.{module}", "--ros-args",
                 "-r", f"__node:={name}", "--params-file", str(pfile)]
         self.nodes.append(NodeProcess(name=name, module=module, argv=argv))
 
     def node(self, name: str) -> NodeProcess:
+        """The process of node ``name`` (for a hosted model node: its model host)."""
         for n in self.nodes:
-            if n.name == name:
+            if n.name == name or name in n.hosted:
                 return n
         raise KeyError(name)
 
@@ -179,10 +208,16 @@ class Graph:
                 self.echo(f"[{n.name:<{width}}] {line}")
 
     def alive(self) -> dict[str, bool]:
-        return {n.name: n.proc is not None and n.proc.poll() is None for n in self.nodes}
+        """Liveness per process and per hosted node (a hosted node lives with its host)."""
+        out = {}
+        for n in self.nodes:
+            out[n.name] = n.proc is not None and n.proc.poll() is None
+            out.update(dict.fromkeys(n.hosted, out[n.name]))
+        return out
 
     def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
-        """Kill one node process (tests use this to check the supervisor survives)."""
+        """Kill one node process (tests use this to check the supervisor survives); for a
+        hosted model node, its model host with every node it holds."""
         p = self.node(name).proc
         if p is not None and p.poll() is None:
             os.killpg(p.pid, sig)
@@ -190,22 +225,23 @@ class Graph:
 
     def stop(self, timeout: float = 15.0) -> dict[str, int | None]:
         """SIGINT every node (the recorder last, so it sees everything), wait, kill leftovers."""
-        procs = [n for n in self.nodes if n.proc is not None and n.proc.poll() is None]
-        last = [n for n in procs if n.module == "recorder_node"]
-        first = [n for n in procs if n.module != "recorder_node"]
+        procs = [(n.module, p) for n in self.nodes if (p := n.proc) is not None
+                 and p.poll() is None]
+        last = [p for module, p in procs if module == "recorder_node"]
+        first = [p for module, p in procs if module != "recorder_node"]
         for group in (first, last):
-            for n in group:
+            for p in group:
                 try:
-                    os.killpg(n.proc.pid, signal.SIGINT)
+                    os.killpg(p.pid, signal.SIGINT)
                 except ProcessLookupError:
                     pass
             deadline = time.monotonic() + timeout
-            for n in group:
+            for p in group:
                 try:
-                    n.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+                    p.wait(timeout=max(0.1, deadline - time.monotonic()))
                 except subprocess.TimeoutExpired:
-                    os.killpg(n.proc.pid, signal.SIGKILL)
-                    n.proc.wait()
+                    os.killpg(p.pid, signal.SIGKILL)
+                    p.wait()
         shutil.rmtree(self._tmp, ignore_errors=True)
         return {n.name: (n.proc.returncode if n.proc else None) for n in self.nodes}
 
@@ -230,7 +266,7 @@ def _die_with_parent() -> None:
 
 
 # nodes restarted when they die (ROS launch's ``respawn=True``); the others end the run
-RESPAWN_MODULES = ("supervisor_node", "residual_node")
+RESPAWN_MODULES = ("supervisor_node", "residual_node", "model_host_node")
 
 
 @dataclass

@@ -86,13 +86,15 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
              echo: Callable[[str], None] | None = None, watch_features: bool = False,
              watch_blocks: bool = False,
              log: Callable[[str], None] = lambda s: None,
-             stop_after_isolation_s: float | None = None) -> tuple[LiveRun, GraphWatcher]:
+             stop_after_isolation_s: float | None = None,
+             hosting: Any = None) -> tuple[LiveRun, GraphWatcher]:
     """Launch (the source starts after the start-up handshake: the bank active, every reader
     matched), watch until the source's end-of-data event (or ``stop_after_isolation_s`` plant
     seconds after an isolation), stop.
 
     ``during(graph, watcher, run)`` is called on every watch iteration (tests kill nodes
-    from it). Returns the run summary and the (closed) watcher with everything it saw.
+    from it). ``hosting``: how the model nodes are hosted (:class:`fdi_ros.launcher.Graph`).
+    Returns the run summary and the (closed) watcher with everything it saw.
     """
     # the source starts after the start-up handshake (see Graph), so no start delay
     over: dict[str, dict] = {"fdi_plant": {"realtime_factor": realtime_factor,
@@ -101,7 +103,8 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
     if scenario is not None:
         over["fdi_plant"]["scenario"] = str(Path(scenario).resolve())
     graph = Graph(config, overrides=over, record=record, replay=replay, echo=echo,
-                  extra_block_readers=int(watch_blocks), watcher="fdi_watcher")
+                  extra_block_readers=int(watch_blocks), watcher="fdi_watcher",
+                  hosting=hosting)
     w = GraphWatcher("fdi_watcher", watch_features=watch_features, watch_blocks=watch_blocks)
     run = LiveRun(bag=str(record) if record else None)
     bank = [e.id for e in graph.cfg.bank]

@@ -30,12 +30,16 @@ def _nodes(context):
     has_limit = "respawn_max_retries" in inspect.signature(ExecuteProcess.__init__).parameters
     actions = []
     for n in graph.nodes:
-        params_file = n.argv[n.argv.index("--params-file") + 1]
         extra = {}
         if n.module in RESPAWN_MODULES:
             extra = {"respawn": True, "respawn_delay": policy.first_delay_s}
             if has_limit:
                 extra["respawn_max_retries"] = policy.limit
+        if n.hosted:  # a model host: its hosted nodes' names and parameter files are arguments
+            actions.append(Node(package="fdi_ros", executable=n.module, output="screen",
+                                arguments=n.argv[3:], **extra))
+            continue
+        params_file = n.argv[n.argv.index("--params-file") + 1]
         actions.append(Node(package="fdi_ros", executable=n.module, name=n.name,
                             parameters=[params_file], output="screen", **extra))
     return actions

@@ -17,8 +17,8 @@ import pytest
 from ros_helpers import ROOT, RosHarness, spawn, stop
 
 PACKAGE = "fdi_ros"
-NODES = ("plant_node", "preprocessor_node", "residual_node", "supervisor_node",
-         "recorder_node", "replayer_node")
+NODES = ("plant_node", "preprocessor_node", "residual_node", "model_host_node",
+         "supervisor_node", "recorder_node", "replayer_node")
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -1,20 +1,24 @@
-"""``fdi-ros bench graph --json``: the live graph's latency, real-time margin and cost.
+"""``fdi-ros bench graph --rpm R --models M --json``: the live graph's latency, real-time margin
+and cost, for a hosting layout of the bank against one process per model node (the baseline,
+measured in the same run).
 
-Runs the diesel graph (7 residual-generator processes + plant, preprocessor, supervisor) in
-real time at 3600 rpm (120 segments/s; at 3900-4000 rpm the
-reference models are at the edge of their identified region) with a leak switched on and
-off four times, and
-measures from a watcher process:
+Runs the diesel graph (M residual-generator lifecycle nodes + plant, preprocessor, supervisor)
+in real time at R rpm (R / 30 segments of 180 deg CA per second) and 140 Nm, with a leak
+switched on and off four times (the scenario ``config/scenarios/bench_graph.yaml`` at the
+speed asked), and measures from a watcher process:
 
-* ``onset_to_symptom``: wall time from the arrival of the sensor block that carries a fault
-  onset to the arrival of the first symptom message after it (median, p95; ms and segments);
 * ``pipeline``: for every segment, symptom arrival minus arrival of the block that completed
-  the segment (preprocessor + residual nodes + supervisor + three DDS hops); this is the
-  baseline the onset latency is compared with: their difference is the detection delay the
-  method itself needs (filtering and debouncing), not the graph;
-* ``realtime_held``: the pipeline latency at the end of the run is not larger than at the start
-  (no growing backlog) and every segment was diagnosed;
-* CPU (percent of one core) and resident memory of every node process.
+  the segment (preprocessor + residual nodes + supervisor + three DDS hops);
+* ``onset_to_symptom``: wall time from the arrival of the sensor block that carries a fault
+  onset to the arrival of the first symptom message after it; its difference to the pipeline
+  is the detection delay the method needs (filtering and debouncing), not the graph;
+* ``segments_diagnosed`` vs ``segments_expected``: a diagnosis per segment ("not valid here"
+  outside the identified region counts);
+* CPU (percent of one core) and resident memory of every node process; ``cores_used`` is
+  their sum in cores.
+
+The 7-model bank is ``config/diesel.yaml``, the 16-model bank ``config/diesel_16.yaml``
+(its missing models are identified first, once).
 """
 
 from __future__ import annotations
@@ -22,20 +26,34 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
+import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 COMMAND = ("bench", "graph")
-HELP = "live graph: fault-to-symptom latency, real time at ~4000 rpm, CPU and memory per node"
+HELP = "live graph: fault-to-symptom pipeline latency and real time at R rpm with M models, " \
+    "a hosting layout against one process per model node"
 
 ROOT = Path(__file__).resolve().parents[2]
+BANKS = {7: ROOT / "config" / "diesel.yaml", 16: ROOT / "config" / "diesel_16.yaml"}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from fdi_ros.commands.launch import add_hosting_arguments
+
     p.add_argument("--json", action="store_true", help="print JSON (the default output)")
-    p.add_argument("--config", default=str(ROOT / "config" / "diesel.yaml"))
+    p.add_argument("--rpm", type=float, default=3600.0, help="engine speed [rpm]")
+    p.add_argument("--models", type=int, default=7, choices=sorted(BANKS),
+                   help="bank size: 7 (config/diesel.yaml) or 16 (config/diesel_16.yaml)")
+    p.add_argument("--config", help="graph configuration (instead of --models)")
     p.add_argument("--scenario",
                    default=str(ROOT / "config" / "scenarios" / "bench_graph.yaml"))
+    p.add_argument("--duration", type=float, help="scenario length [s] (default: the file's)")
+    p.add_argument("--no-baseline", action="store_true",
+                   help="measure only the layout asked, not one process per model node too")
+    add_hosting_arguments(p)
 
 
 def _pct(x: list[float], q: float) -> float:
@@ -44,29 +62,38 @@ def _pct(x: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(x), q)) if x else math.nan
 
 
-def run(args: argparse.Namespace) -> int:
-    import bisect
+def _scenario(path: str, rpm: float, duration: float | None) -> tuple[Path, Any]:
+    """The bench scenario at ``rpm`` (a temporary copy), and its loaded form."""
+    import yaml
 
-    import psutil
-
-    from fdi_ros.livegraph import run_live
-    from fdi_ros.plants import ensure_bank
     from fdi_ros.plants.diesel.scenario import load_scenario
 
-    ensure_bank(args.config, progress=False, log=lambda s: None)
-    sc = load_scenario(args.scenario)
-    n_rpm = float(sc.n[0])
-    seg_ms = 180.0 / (6.0 * n_rpm) * 1e3  # one 180 deg CA segment [ms]
-    usage: dict[str, dict] = {}
-    first: dict[str, tuple] = {}
+    doc = yaml.safe_load(Path(path).read_text())
+    for pt in doc.get("inputs", {}).get("points", []):
+        pt["n"] = float(rpm)
+    if duration is not None:
+        doc["duration_s"] = float(duration)
+        doc["faults"] = [f for f in doc.get("faults", []) if f["t"] < duration]
+    out = Path(tempfile.mkdtemp(prefix="fdi_bench_")) / "bench_graph.yaml"
+    out.write_text(yaml.safe_dump(doc))
+    return out, load_scenario(out)
 
-    last = {"t": 0.0}
 
-    def sample(graph, w, run):
+class _Usage:
+    """CPU and memory of the graph's processes, sampled once a second (a light watcher)."""
+
+    def __init__(self) -> None:
+        self.usage: dict[str, dict] = {}
+        self.first: dict[str, tuple] = {}
+        self.last = 0.0
+
+    def __call__(self, graph: Any, w: Any, run: Any) -> None:
+        import psutil
+
         now = time.monotonic()
-        if now - last["t"] < 1.0:  # sample the processes once a second: keep the watcher light
+        if now - self.last < 1.0:
             return
-        last["t"] = now
+        self.last = now
         for n in graph.nodes:
             if n.proc is None or n.proc.poll() is not None:
                 continue
@@ -74,18 +101,29 @@ def run(args: argparse.Namespace) -> int:
                 p = psutil.Process(n.proc.pid)
                 ct = p.cpu_times()
                 cpu = ct.user + ct.system
-                if n.name not in first and w.seen.blocks:
-                    first[n.name] = (now, cpu)
-                if n.name in first:
-                    t0, c0 = first[n.name]
-                    usage[n.name] = {"cpu_pct_of_one_core": round(100 * (cpu - c0) /
-                                                                 max(now - t0, 1e-9), 1),
-                                     "rss_mb": round(p.memory_info().rss / 2**20, 1)}
+                if n.name not in self.first and w.seen.blocks:
+                    self.first[n.name] = (now, cpu)
+                if n.name in self.first:
+                    t0, c0 = self.first[n.name]
+                    self.usage[n.name] = {
+                        "cpu_pct_of_one_core": round(100 * (cpu - c0) / max(now - t0, 1e-9), 1),
+                        "rss_mb": round(p.memory_info().rss / 2**20, 1)}
             except psutil.Error:
                 pass
 
-    run_, w = run_live(args.config, scenario=args.scenario, realtime_factor=1.0,
-                       timeout_s=120, during=sample, watch_blocks=True)
+
+def measure(config: Path, scenario: Path, sc: Any, hosting: dict) -> dict:
+    """One live run of ``config`` with the model nodes hosted as ``hosting`` says."""
+    import bisect
+
+    from fdi_ros.livegraph import run_live
+
+    n_rpm = float(sc.n[0])
+    seg_ms = 180.0 / (6.0 * n_rpm) * 1e3  # one 180 deg CA segment [ms]
+    usage = _Usage()
+    run_, w = run_live(config, scenario=scenario, realtime_factor=1.0,
+                       timeout_s=sc.duration_s + 90, during=usage, watch_blocks=True,
+                       hosting=hosting)
     blocks = w.seen.blocks  # (wall arrival, plant time of the block's last sample)
     b_t = [t for _, t in blocks]
     b_wall = [wall for wall, _ in blocks]
@@ -94,14 +132,13 @@ def run(args: argparse.Namespace) -> int:
         i = bisect.bisect_left(b_t, t_plant - 1e-9)
         return b_wall[i] if i < len(b_wall) else math.nan
 
-    pipe = []
+    lat = []
     for wall, m in w.seen.symptoms:
         a = block_arrival(float(m.t_s))
         if not math.isnan(a):
-            pipe.append((float(m.t_s), 1e3 * (wall - a)))
-    onsets = [sc_f.t for sc_f in sc.faults if sc_f.active]
+            lat.append(1e3 * (wall - a))
     onset_lat, onset_segments = [], []
-    for t_on in onsets:
+    for t_on in (f.t for f in sc.faults if f.active):
         a = block_arrival(t_on)
         hit = next(((wall, m) for wall, m in w.seen.symptoms
                     if m.t_s >= t_on and m.valid and any(int(v) for v in m.levels)), None)
@@ -109,32 +146,65 @@ def run(args: argparse.Namespace) -> int:
             continue
         onset_lat.append(1e3 * (hit[0] - a))
         onset_segments.append((hit[1].t_s - t_on) * 1e3 / seg_ms)
-    lat = [x for _, x in pipe]
     q = max(len(lat) // 4, 1)
     early, late = _pct(lat[:q], 50), _pct(lat[-q:], 50)
     expected = int(round(sc.duration_s * 1e3 / seg_ms))
-    out = {
-        "scenario": Path(args.scenario).name, "engine_speed_rpm": n_rpm,
-        "segment_ms": round(seg_ms, 3), "model_nodes": len(run_.lifecycle_after) or 7,
+    indices = {int(d.index) for _, d in w.seen.diagnoses}
+    cpu = sum(u["cpu_pct_of_one_core"] for u in usage.usage.values())
+    return {
+        "hosting": hosting, "processes": len(usage.usage),
+        "segments_expected": expected, "segments_diagnosed": len(indices),
+        "pipeline_ms_p50": round(_pct(lat, 50), 2), "pipeline_ms_p95": round(_pct(lat, 95), 2),
+        "pipeline_ms_max": round(max(lat), 2) if lat else None,
+        "pipeline_segments_p95": round(_pct(lat, 95) / seg_ms, 2),
+        "cores_used": round(cpu / 100, 2),
         "onset_to_symptom": {
             "n_faults": len(onset_lat),
             "median_ms": round(_pct(onset_lat, 50), 2), "p95_ms": round(_pct(onset_lat, 95), 2),
-            "median_segments": round(_pct(onset_lat, 50) / seg_ms, 2),
-            "p95_segments": round(_pct(onset_lat, 95) / seg_ms, 2),
             "detection_delay_segments_plant_time": [round(x, 2) for x in onset_segments]},
-        "pipeline": {"n": len(lat), "median_ms": round(_pct(lat, 50), 2),
-                     "p95_ms": round(_pct(lat, 95), 2),
-                     "median_segments": round(_pct(lat, 50) / seg_ms, 2),
-                     "p95_segments": round(_pct(lat, 95) / seg_ms, 2)},
-        "ratio_onset_to_pipeline_median": round(_pct(onset_lat, 50) / _pct(lat, 50), 2)
-        if lat and onset_lat else None,
-        "realtime_held": bool(lat) and run_.segments >= expected - 2 and late <= 2 * early + 5,
-        "segments_diagnosed": run_.segments, "segments_expected": expected,
+        "realtime_held": bool(lat) and len(indices) >= expected - 2 and late <= 2 * early + 5,
         "pipeline_median_ms_first_quarter": round(early, 2),
         "pipeline_median_ms_last_quarter": round(late, 2),
-        "wall_s": round(run_.wall_s, 2),
-        "nodes": usage,
-        "cpu_pct_total": round(sum(u["cpu_pct_of_one_core"] for u in usage.values()), 1),
+        "diagnosis_states": _states(w), "wall_s": round(run_.wall_s, 2), "nodes": usage.usage,
     }
+
+
+def _states(w: Any) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for _, d in w.seen.diagnoses:
+        out[d.state] = out.get(d.state, 0) + 1
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    from fdi_ros.commands.launch import hosting_overrides
+    from fdi_ros.core.graphconfig import load_graph_config
+    from fdi_ros.plants import ensure_bank
+
+    config = Path(args.config) if args.config else BANKS[args.models]
+    cfg = load_graph_config(config)
+    if args.config and len(cfg.bank) != args.models:
+        print(f"fdi-ros bench graph: {config} holds {len(cfg.bank)} models", file=sys.stderr)
+    if not args.rpm > 0:
+        print("fdi-ros bench graph: --rpm must be > 0", file=sys.stderr)
+        return 2
+    ensure_bank(cfg, progress=False, log=lambda s: print(s, file=sys.stderr))
+    scenario, sc = _scenario(args.scenario, args.rpm, args.duration)
+    layout = {**{"mode": "container", "containers": 2, "executor": "events"},
+              **{k: v for k, v in hosting_overrides(args).items() if v is not None}}
+    result = measure(config, scenario, sc, layout)
+    out: dict[str, Any] = {"rpm": args.rpm, "models": len(cfg.bank),
+                           "segment_ms": round(30e3 / args.rpm, 3),
+                           "scenario": Path(args.scenario).name, "duration_s": sc.duration_s,
+                           **result}
+    if not args.no_baseline and layout["mode"] != "process":
+        base = measure(config, scenario, sc, {"mode": "process"})
+        out["baseline"] = base
+        out["ratio_p95_baseline_to_layout"] = round(
+            base["pipeline_ms_p95"] / result["pipeline_ms_p95"], 2) \
+            if result["pipeline_ms_p95"] > 0 else None
+        out["ratio_cores_baseline_to_layout"] = round(
+            base["cores_used"] / result["cores_used"], 2) if result["cores_used"] > 0 else None
+    out["every_segment_diagnosed"] = result["segments_diagnosed"] >= result["segments_expected"]
     print(json.dumps(out, indent=2))
     return 0

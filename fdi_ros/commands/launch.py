@@ -1,4 +1,5 @@
-"""``fdi-ros launch config/<plant>.yaml``: the live graph, one process per node."""
+"""``fdi-ros launch config/<plant>.yaml``: the live graph, one process per node (or the bank's
+model nodes in a few model-host processes: ``--hosting container``)."""
 
 from __future__ import annotations
 
@@ -22,7 +23,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", metavar="OUT",
                    help="write the run's diagnosis events (as fdi-ros diagnose --json) to OUT")
     p.add_argument("--respawn-limit", type=int, default=5,
-                   help="restarts of a dead supervisor or model node (0: none)")
+                   help="restarts of a dead supervisor, model node or model host (0: none)")
+    add_hosting_arguments(p)
+
+
+def add_hosting_arguments(p: argparse.ArgumentParser) -> None:
+    """``--hosting``, ``--containers``, ``--executor`` (default: the configuration's)."""
+    p.add_argument("--hosting", choices=("process", "container"),
+                   help="bank model nodes: one process each, or in model-host processes")
+    p.add_argument("--containers", type=int, metavar="N",
+                   help="model-host processes with --hosting container")
+    p.add_argument("--executor", choices=("single", "events"),
+                   help="executor of a model host: SingleThreadedExecutor or EventsExecutor")
+
+
+def hosting_overrides(args: argparse.Namespace) -> dict:
+    return {"mode": args.hosting, "containers": args.containers, "executor": args.executor}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -45,7 +61,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"fdi-ros launch: {args.record} already exists: the recorder cannot record "
               "there; choose another --record", file=sys.stderr)
         return 2
-    graph = Graph(args.config, overrides=over, record=args.record, replay=args.replay,
-                  watcher=WATCHER)
+    try:
+        graph = Graph(args.config, overrides=over, record=args.record, replay=args.replay,
+                      hosting=hosting_overrides(args), watcher=WATCHER)
+    except ValueError as exc:
+        print(f"fdi-ros launch: {exc}", file=sys.stderr)
+        return 2
     return run_until_interrupted(graph, respawn=RespawnPolicy(limit=args.respawn_limit),
                                  json_out=args.json)

@@ -14,19 +14,69 @@ t0_s : isolation hold time T0 [s].
 symptoms : optional ``{model: <bank id whose residuals give symptoms>, config: {...}}``.
 stale_s : residuals older than this (plant time) count as missing [s].
 node_timeout_s : a lifecycle service that does not answer within this [s] marks the node failed.
+hosting : optional ``{mode: process | container, containers: N, executor: single | events}``:
+    how the bank's model nodes are hosted. ``process`` (the default): one process per model
+    node. ``container``: the model nodes spread over ``containers`` host processes (round
+    robin), several lifecycle nodes on one executor per process, each still its own node.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from fdi_ros.core.files import read_document
 from fdi_ros.core.supervisor import BankModel
 
-KNOWN_KEYS = {"plant", "bank", "t0_s", "symptoms", "stale_s", "node_timeout_s", "description"}
+KNOWN_KEYS = {"plant", "bank", "t0_s", "symptoms", "stale_s", "node_timeout_s", "description",
+              "hosting"}
+HOSTING_MODES = ("process", "container")
+HOSTING_EXECUTORS = ("single", "events")
+
+
+@dataclass(frozen=True)
+class Hosting:
+    """How bank model nodes are hosted: one process each, or ``containers`` host processes."""
+
+    mode: str = "process"
+    containers: int = 1
+    executor: str = "single"
+
+    def __post_init__(self) -> None:
+        if self.mode not in HOSTING_MODES:
+            raise ValueError(f"hosting mode {self.mode!r}; known: {', '.join(HOSTING_MODES)}")
+        if self.executor not in HOSTING_EXECUTORS:
+            raise ValueError(f"hosting executor {self.executor!r}; known: "
+                             f"{', '.join(HOSTING_EXECUTORS)}")
+        if isinstance(self.containers, bool) or not isinstance(self.containers, int) \
+                or self.containers < 1:
+            raise ValueError(f"hosting containers must be an integer >= 1, got "
+                             f"{self.containers!r}")
+
+    @classmethod
+    def parse(cls, doc: Any) -> Hosting:
+        """From the ``hosting`` mapping (or a bare mode string); ValueError when malformed."""
+        if doc is None:
+            return cls()
+        if isinstance(doc, str):
+            doc = {"mode": doc}
+        if not isinstance(doc, dict):
+            raise ValueError("hosting must be a mapping {mode, containers, executor}")
+        unknown = set(doc) - {"mode", "containers", "executor"}
+        if unknown:
+            raise ValueError(f"unknown key(s) in hosting: {sorted(unknown)}")
+        return cls(mode=str(doc.get("mode", "process")), containers=doc.get("containers", 1),
+                   executor=str(doc.get("executor", "single")))
+
+    def groups(self, names: list[str]) -> list[list[str]]:
+        """The node names per host process: one each (process), or round robin over at most
+        ``containers`` hosts (container)."""
+        if self.mode == "process":
+            return [[n] for n in names]
+        k = min(self.containers, len(names)) or 1
+        return [names[i::k] for i in range(k) if names[i::k]]
 
 
 @dataclass(frozen=True)
@@ -46,10 +96,11 @@ class GraphConfig:
     plant: str
     bank: tuple[BankEntry, ...]
     t0_s: float
-    symptoms: dict | None = None
+    symptoms: dict[str, Any] | None = None
     stale_s: float = math.inf
     node_timeout_s: float = 2.0
-    node_params: dict[str, dict] = field(default_factory=dict)
+    node_params: dict[str, dict[str, Any]] = field(default_factory=dict)
+    hosting: Hosting = field(default_factory=Hosting)
 
     @property
     def bank_models(self) -> list[BankModel]:
@@ -108,5 +159,9 @@ def load_graph_config(path: str | Path) -> GraphConfig:
                       stale_s=float(g.get("stale_s", math.inf)),
                       node_timeout_s=float(g.get("node_timeout_s", 2.0)),
                       node_params=node_params)
+    try:
+        cfg = replace(cfg, hosting=Hosting.parse(g.get("hosting")))
+    except ValueError as exc:
+        raise ValueError(f"{p}: {exc}") from None
     _ = cfg.bank_models  # validates the fault sets (one size per fault type and model)
     return cfg

@@ -15,11 +15,15 @@
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Iterable, Mapping
+from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field
 from typing import Any
 
 from fdi_ros.core.bankdriver import TIMEOUT, BankDriver, Note, label
+from fdi_ros.core.diagnoser import Diagnoser
+from fdi_ros.core.faultmemory import FaultMemory, FaultRecord
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 # The supervisor's parameters: name: (default, description, read_only, (min, max) or None)
@@ -309,11 +313,6 @@ class SupervisorCore:
                  stale_s: float = 0.5, stale_wall_s: float = 2.0, model_wall_s: float = 1.0,
                  confirm_s: float = 0.1, heal_s: float = 5.0, store: Any = None,
                  snapshot_s: float = 5.0) -> None:
-        from collections import deque
-
-        from fdi_ros.core.diagnoser import Diagnoser
-        from fdi_ros.core.faultmemory import FaultMemory
-
         self.cfg = cfg
         self.diag = Diagnoser(cfg)
         self.driver = BankDriver([(e.id, e.node_name) for e in cfg.bank], policy)
@@ -326,7 +325,7 @@ class SupervisorCore:
         if store is not None:
             store.load(self.memory)
         self.last: Any = None
-        self._features: dict[int, dict] = {}
+        self._features: dict[int, dict[str, float]] = {}
         self._symptoms: dict[int, Any] = {}
         self._stale: dict[str, str] = {}
         # what the start-up handshake still waits for (see waiting_for; set by the node)
@@ -334,7 +333,7 @@ class SupervisorCore:
         # the last snapshot_s of plant time as core records (features, residuals, diagnoses),
         # for the snapshot bag written at a confirmation
         self.snapshot_s = snapshot_s
-        self.ring: deque = deque()
+        self.ring: deque[tuple[float, str, object]] = deque()
 
     @classmethod
     def from_params(cls, p: Mapping[str, Any]) -> SupervisorCore:
@@ -370,7 +369,7 @@ class SupervisorCore:
         if math.isfinite(t):  # a malformed block is not data
             self.inputs.seen("sensor_block", t, wall)
 
-    def features(self, fv: Any, wall: float) -> list:
+    def features(self, fv: Any, wall: float) -> list[object]:
         """A feature vector (:class:`fdi_ros.core.types.FeatureVector`) arrived."""
         self.inputs.seen("features", fv.t_end, wall)
         self.aligner.add_features(fv.index, fv.t_end)
@@ -391,7 +390,7 @@ class SupervisorCore:
             path, n = base.with_name(f"{base.name}.{n}"), n + 1
         return path
 
-    def residual(self, rv: Any, wall: float) -> list:
+    def residual(self, rv: Any, wall: float) -> list[object]:
         if rv.model_id not in self.driver.nodes:
             return []
         self.models.seen(f"residuals {rv.model_id}", rv.t, wall)
@@ -411,10 +410,10 @@ class SupervisorCore:
         return [m for m in self.diag.models_online if self.driver.live(m)
                 and f"residuals {m}" not in self._stale]
 
-    def _steps(self) -> list:
+    def _steps(self) -> list[object]:
         from dataclasses import replace
 
-        out: list = []
+        out: list[object] = []
         for st in self.aligner.ready(self._expected()):
             sym = self._symptoms.pop(st.index, None)
             # A silent model (frozen, overloaded, or gone without leaving the graph yet) is
@@ -449,7 +448,7 @@ class SupervisorCore:
                 del self._features[old]
         return out
 
-    def _remember(self, d: Any, st: Step, sym: Any) -> list:
+    def _remember(self, d: Any, st: Step, sym: Any) -> list[object]:
         frame = {"features": self._features.get(st.index, {}),
                  "residuals": {m: {"norm": float(r.norm), "values": list(map(float, r.values))}
                                for m, r in st.residuals.items()},
@@ -487,14 +486,12 @@ class SupervisorCore:
             key = "policy" if name == "reconcile" else name
             self.driver.policy = replace(self.driver.policy, **{key: value})
 
-    def clear(self, faults: list[str]) -> list:
+    def clear(self, faults: list[str]) -> list[FaultRecord]:
         """Clear faults of the memory; clearing all restarts the diagnosis (initial bank)."""
         cleared = self.memory.clear(faults)
         if self.store is not None:
             self.store.save(cleared)
         if not faults:
-            from fdi_ros.core.diagnoser import Diagnoser
-
             self.diag = Diagnoser(self.cfg)
             self.driver.set_desired(self.diag.models_online)
         return cleared
@@ -539,8 +536,9 @@ class SupervisorCore:
         return out
 
     # -- health (wall time) -------------------------------------------------------------------
-    def tick(self, now: float, ready: dict[str, bool], present: set[str] | None) -> list:
-        out: list = []
+    def tick(self, now: float, ready: dict[str, bool], present: AbstractSet[str] | None
+             ) -> list[object]:
+        out: list[object] = []
         for mid, v in self.driver.nodes.items():
             key = f"residuals {mid}"
             if self.driver.live(mid) and mid in self.diag.models_online:

@@ -9,7 +9,7 @@ from :mod:`fdi_ros.core`.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,7 +25,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from fdi_ros.nodes.spin import DRAIN_S, ensure_loopback_env, run_node
 
 __all__ = ["DATA_QOS", "DRAIN_S", "LATCHED_QOS", "REQUEST_QOS", "ClockOut", "Param",
-           "declare_params", "declare_table", "ensure_loopback_env", "follow_rate", "run_node"]
+           "declare_params", "ensure_loopback_env", "follow_rate", "required",
+           "run_node"]
 
 # Data streams: reliable with a deep queue, so a busy 2-core machine delays rather than drops.
 DATA_QOS = QoSProfile(depth=500, history=HistoryPolicy.KEEP_LAST,
@@ -58,6 +59,11 @@ class Param:
     read_only: bool = False
     range: tuple[float, float] | None = None
     check: Callable[[Any], str | None] | None = None
+
+
+def required(value: Any) -> str | None:
+    """A ``Param.check`` for a parameter that must be given (not empty)."""
+    return None if value else "is required (no value given)"
 
 
 def declare_params(node: Any, params: Sequence[Param]) -> None:
@@ -134,17 +140,3 @@ def follow_rate(node: Any, pacer: Any, name: str, now: Callable[[], float], what
                 node.get_logger().info(f"{name} {q.value:g} from {what} {t:.3f} s")
 
     node.add_post_set_parameters_callback(on_set)
-
-
-def declare_table(node: Any, table: Mapping[str, tuple]) -> dict[str, Any]:
-    """Declare parameters given as ``{name: (default, description, read_only, (min, max) or
-    None)}`` (the form a pure core module can hold); returns their start values."""
-    out = {}
-    for name, (default, text, ro, rng) in table.items():
-        d = ParameterDescriptor(name=name, description=text, read_only=ro)
-        if rng is not None:
-            d.floating_point_range = [FloatingPointRange(from_value=rng[0], to_value=rng[1])]
-        value = node.declare_parameter(name, default, d).value
-        out[name] = float(value) if isinstance(default, float) else value
-    return out
-

@@ -30,13 +30,15 @@ from fdi_ros.nodes.common import (
     Param,
     declare_params,
     follow_rate,
+    required,
     run_node,
 )
 from fdi_ros.nodes.recorder_node import _msg_class
 from fdi_ros.nodes.startup import SOURCE_PARAMS, SourceGate
 
 PARAMS = (
-    Param("bag", "", "bag directory to replay (rosbag2, MCAP); required", read_only=True),
+    Param("bag", "", "bag directory to replay (rosbag2, MCAP); required", read_only=True,
+          check=required),
     Param("rate", 1.0, "bag seconds per wall second; 0 = as fast as the readers acknowledge; "
           "a change applies from that moment on", range=(0.0, 1000.0)),
     Param("topics", ["/fdi/sensor_block", "/fdi/fault_truth"], "topics of the bag to publish",
@@ -51,8 +53,6 @@ class ReplayerNode(Node):
         super().__init__("fdi_replayer")
         declare_params(self, PARAMS)
         path = self.get_parameter("bag").value
-        if not path:
-            raise ValueError("parameter 'bag' is required")
         topics = list(self.get_parameter("topics").value)
         available = bagio.topics(path)
         self._pubs: dict[str, Any] = {}

@@ -1,5 +1,6 @@
-"""How every fdi_ros node process runs: the loopback guard, and a main() wrapper that spins one
-node until SIGINT/SIGTERM and shuts it down cleanly."""
+"""How every fdi_ros node process runs: the loopback guard, and a main() wrapper that spins
+its nodes (one, or several for a model host, as a component container holds components) on
+one executor until SIGINT/SIGTERM and shuts them down cleanly."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import signal
 import sys
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 # After a stop signal, keep executing callbacks this long for data already delivered.
@@ -28,20 +29,49 @@ def run_node(make_node: Callable[[], Any], *, executor_threads: int = 1,
     SIGTERM is turned into the same orderly shutdown as SIGINT, so a node killed by the
     launcher still runs ``on_shutdown`` (the recorder closes its bag there).
     """
+    return run_nodes(lambda: [make_node()], executor="multi" if executor_threads > 1
+                     else "single", threads=executor_threads, on_shutdown=on_shutdown,
+                     args=args)
+
+
+EXECUTORS = ("single", "events", "multi")
+
+
+def make_executor(kind: str, threads: int = 2) -> Any:
+    """An rclpy executor by name: ``single`` (SingleThreadedExecutor), ``events``
+    (rclpy.experimental.EventsExecutor) or ``multi`` (MultiThreadedExecutor)."""
+    from rclpy.executors import MultiThreadedExecutor, SingleThreadedExecutor
+
+    if kind == "events":
+        from rclpy.experimental import EventsExecutor
+
+        return EventsExecutor()
+    if kind == "multi":
+        return MultiThreadedExecutor(num_threads=threads)
+    if kind == "single":
+        return SingleThreadedExecutor()
+    raise ValueError(f"unknown executor {kind!r}; known: {', '.join(EXECUTORS)}")
+
+
+def run_nodes(make_nodes: Callable[[], Sequence[Any]], *, executor: str = "single",
+              threads: int = 2, on_shutdown: Callable[[Any], None] | None = None,
+              args: list[str] | None = None) -> int:
+    """Initialise rclpy, spin the nodes ``make_nodes()`` returns on ONE executor of the kind
+    ``executor`` until SIGINT/SIGTERM, drain, shut down cleanly (``on_shutdown`` per node).
+
+    Several nodes in one process on one executor is how a component container hosts them:
+    each stays a node of its own (name, parameters, services), only the process is shared.
+    """
     ensure_loopback_env()
     import rclpy
-    from rclpy.executors import (
-        ExternalShutdownException,
-        MultiThreadedExecutor,
-        SingleThreadedExecutor,
-    )
+    from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
 
     # Our own SIGINT/SIGTERM handling: stop spinning, then drain what DDS already delivered
     # (a recorder must not lose acknowledged messages), then shut down.
     rclpy.init(args=args if args is not None else sys.argv,
                signal_handler_options=SignalHandlerOptions.NO)
-    node = None
+    nodes: list[Any] = []
     stopping = {"flag": False}
 
     def _stop(signum: int, frame: Any) -> None:
@@ -51,10 +81,10 @@ def run_node(make_node: Callable[[], Any], *, executor_threads: int = 1,
     signal.signal(signal.SIGINT, _stop)
     code = 0
     try:
-        node = make_node()
-        ex = (MultiThreadedExecutor(num_threads=executor_threads) if executor_threads > 1
-              else SingleThreadedExecutor())
-        ex.add_node(node)
+        nodes = list(make_nodes())
+        ex = make_executor(executor, threads)
+        for node in nodes:
+            ex.add_node(node)
         while not stopping["flag"] and rclpy.ok():
             ex.spin_once(timeout_sec=0.1)
         deadline = time.monotonic() + DRAIN_S
@@ -66,7 +96,7 @@ def run_node(make_node: Callable[[], Any], *, executor_threads: int = 1,
         traceback.print_exc()
         code = 1
     finally:
-        if node is not None:
+        for node in nodes:
             if on_shutdown is not None:
                 try:
                     on_shutdown(node)

@@ -13,7 +13,10 @@ would differ from ``fdi-ros diagnose``. At its end a source publishes the end-of
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any
+
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 
 from fdi_ros.nodes.common import LATCHED_QOS, Param
 
@@ -79,3 +82,16 @@ class SourceGate:
         m = self._Header(frame_id=f"end_of_data {count}")
         m.stamp.sec, m.stamp.nanosec = divmod(int(t_ns), 1_000_000_000)
         self._end.publish(m)
+
+
+def declare_table(node: Any, table: Mapping[str, tuple]) -> dict[str, Any]:
+    """Declare parameters given as ``{name: (default, description, read_only, (min, max) or
+    None)}`` (the form a pure core module can hold); returns their start values."""
+    out = {}
+    for name, (default, text, ro, rng) in table.items():
+        d = ParameterDescriptor(name=name, description=text, read_only=ro)
+        if rng is not None:
+            d.floating_point_range = [FloatingPointRange(from_value=rng[0], to_value=rng[1])]
+        value = node.declare_parameter(name, default, d).value
+        out[name] = float(value) if isinstance(default, float) else value
+    return out

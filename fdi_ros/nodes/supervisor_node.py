@@ -1,12 +1,12 @@
 """Expert supervisor node: the ROS edge of :class:`fdi_ros.core.supervision.SupervisorCore`.
-
 Parameters, subscriptions (features, residuals, sensor-block stamps, every bank node's
-``transition_event``), lifecycle clients (async only), ``/fdi/get_faults``, ``/fdi/clear_faults``,
+``transition_event``), async lifecycle clients, ``/fdi/get_faults``, ``/fdi/clear_faults``,
 ``/fdi/ready`` (start-up handshake), timers. All decisions are in the core."""
 
 from __future__ import annotations
 
 import time
+from functools import partial
 from typing import Any, cast
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -23,8 +23,8 @@ from std_msgs.msg import Header
 from fdi_ros import bag, msgs
 from fdi_ros.core.bankdriver import ChangeState, GetState, Note
 from fdi_ros.core.supervision import GATE_TOPICS, PARAMS, Publish, SupervisorCore
-from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, declare_table, run_node
-from fdi_ros.nodes.startup import READY_TOPIC
+from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, run_node
+from fdi_ros.nodes.startup import READY_TOPIC, declare_table
 
 
 class SupervisorNode(Node):
@@ -40,10 +40,8 @@ class SupervisorNode(Node):
         for e in self.core.cfg.bank:
             self.clients_[e.id] = (self.create_client(CS, f"/{e.node_name}/change_state"),
                                    self.create_client(GS, f"/{e.node_name}/get_state"))
-            self.create_subscription(
-                TransitionEvent, f"/{e.node_name}/transition_event",
-                lambda m, i=e.id: self._do(self.core.driver.on_transition_event(
-                    i, m.start_state.id, m.goal_state.id, time.monotonic())), 10)
+            self.create_subscription(TransitionEvent, f"/{e.node_name}/transition_event",
+                                     partial(self._on_transition, e.id), 10)
         self.pub = {"symptoms": self.create_publisher(Symptoms, "/fdi/symptoms", DATA_QOS),
                     "diagnosis": self.create_publisher(Diagnosis, "/fdi/diagnosis", DATA_QOS),
                     "ros": self.create_publisher(DiagnosticArray, "/diagnostics", 10),
@@ -56,13 +54,11 @@ class SupervisorNode(Node):
         self.create_service(GetFaults, "/fdi/get_faults", lambda q, r: GetFaults.Response(
             faults=msgs.fault_records(self.core.memory.records.values())))
         self.create_service(ClearFaults, "/fdi/clear_faults", self._clear_faults)
-        # One thread: answers, data, timers never run concurrently; every call is async.
         self._gate: tuple[float, list] | None = (time.monotonic() + p["ready_timeout_s"],
                                                  list(p["wait_for_readers"]))
         self.create_timer(0.05, self._tick)
         self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
-        self.get_logger().info(f"fault memory {self.core.store.path} "
-                               f"({len(self.core.memory.records)} records)")
+        self.get_logger().info(f"fault memory {self.core.store.path} ({len(self.core.memory.records)} records)")  # noqa: E501
 
     def _tick(self) -> None:
         now = time.monotonic()
@@ -96,11 +92,15 @@ class SupervisorNode(Node):
             self._do(feed(rec, time.monotonic()))
         return callback
 
-    def _do(self, actions: list) -> None:
+    def _on_transition(self, model_id: str, m: Any) -> None:
+        self._do(self.core.driver.on_transition_event(model_id, m.start_state.id,
+                                                      m.goal_state.id, time.monotonic()))
+
+    def _do(self, actions: list[object]) -> None:
         for a in actions:
             if isinstance(a, (ChangeState, GetState)):
                 cli = self.clients_[a.model_id][isinstance(a, GetState)]
-                req = cli.srv_type.Request()
+                req = (GS if isinstance(a, GetState) else CS).Request()
                 if isinstance(a, ChangeState):
                     req.transition.id = a.transition
                 cli.call_async(req).add_done_callback(lambda f, a=a: self._done(f, a))

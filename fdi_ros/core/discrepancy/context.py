@@ -128,26 +128,34 @@ class ChannelContext:
     source: Any = field(default=None, repr=False)  # (data, model) behind ``sensor_response``
     responses: dict[Any, np.ndarray] = field(default_factory=dict, repr=False)
 
+    def sensor_lag_response(self, sensor: str, tau_s: float) -> np.ndarray:
+        """``yhat(x + tau dx/dt) - yhat(x)``: the prediction from the reading of ``sensor``
+        with a first-order lag tau undone (the truth of a lagged reading is the reading plus
+        tau times its slope), minus the prediction. The slope is taken over a window of tau
+        (at least 0.05 s): undoing a lag amplifies what is faster than it. Cached per tau."""
+        return self._corrected(sensor, "lag", tau_s)
+
     def sensor_shift_response(self, sensor: str, delay_s: float) -> np.ndarray:
         """``yhat(x(t + d)) - yhat(x(t))``: the prediction from the reading of ``sensor``
-        advanced by ``delay_s`` (per segment, linear interpolation), minus the prediction.
+        advanced by ``delay_s`` (per segment, linear interpolation), minus the prediction: a
+        reading that trails the truth by a dead time d is undone by the advance, computed
+        exactly (no derivative of a noisy reading). Cached per delay."""
+        return self._corrected(sensor, "shift", delay_s)
 
-        A reading that trails the truth by a dead time d, or by a first-order lag tau (to
-        first order the same as a delay tau for a slowly varying signal), is undone by the
-        advance; computed exactly (no derivative of a noisy reading). Cached per delay.
-        """
-        key = (sensor, "shift", round(float(delay_s), 9))
-        if key in self.responses:
-            return self.responses[key]
-        if self.source is None:
-            raise ValueError(f"no model behind channel {self.channel}")
-        data, model = self.source
-        adv = self.sensor_reading(sensor, delay_s)
-        pred = model.predict(_replaced(data, sensor, adv))[self.channel]
-        base = self.sensor_base()
-        out: np.ndarray = np.asarray(pred, float) - base
-        self.responses[key] = out
-        return out
+    def _corrected(self, sensor: str, how: str, v: float) -> np.ndarray:
+        key = (sensor, how, round(float(v), 9))
+        if key not in self.responses:
+            if self.source is None:
+                raise ValueError(f"no model behind channel {self.channel}")
+            data, model = self.source
+            if how == "lag":
+                x = self.sensor_reading(sensor)
+                fixed = x + v * smooth_derivative(x, data.t, data.segment, max(float(v), 0.05))
+            else:
+                fixed = self.sensor_reading(sensor, v)
+            pred = model.predict(_replaced(data, sensor, fixed))[self.channel]
+            self.responses[key] = np.asarray(pred, float) - self.sensor_base()
+        return self.responses[key]
 
     def sensor_reading(self, sensor: str, advance_s: float = 0.0) -> np.ndarray:
         """The reading of an input sensor, advanced by ``advance_s`` (per segment, linear

@@ -34,7 +34,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 from scipy.signal import lfilter
 
-from fdi_ros.core.discrepancy.context import ChannelContext
+from fdi_ros.core.discrepancy.context import ChannelContext, smooth_derivative
 
 CATALOGUE = ("input_dependence", "missing_harmonic", "sensor_lag", "dead_time", "gain_error",
              "offset", "drift", "leak", "local_region")
@@ -659,7 +659,7 @@ SENSOR_KINDS: dict[str, tuple[str, str, Any]] = {
     "offset": ("one", "offset", lambda b: -b),
     "gain_error": ("x", "gain", lambda b: 1.0 / (1.0 + b) if b > -1.0 else math.inf),
     "drift": ("t", "rate_per_s", lambda b: -b),
-    "sensor_lag": ("shift", "tau_s", lambda b: b),  # fitted as an advance of the reading
+    "sensor_lag": ("shift", "tau_s", lambda b: b),  # fitted on a grid (see SensorError)
     "dead_time": ("shift", "delay_s", lambda b: b),
     "input_dependence": ("col", "coef", lambda b: -b),
 }
@@ -673,9 +673,10 @@ class SensorError(Effect):
     prediction is wrong by about ``D(e)`` (:meth:`ChannelContext.sensor_response`). The fit
     regresses the residual on ``D`` of the error's shape: an offset (constant), a gain
     (proportional to the reading), a drift (proportional to time) or a dependence on a
-    measured column. A lag or dead time is fitted as the advance of the reading that explains
-    the residual best (:meth:`ChannelContext.sensor_shift_response`; a first-order lag tau and
-    a delay d = tau make a slowly varying reading trail the truth alike).
+    measured column. A dead time is fitted as the advance of the reading that explains the
+    residual best (:meth:`ChannelContext.sensor_shift_response`), a first-order lag as the
+    reading plus tau times its slope (:meth:`ChannelContext.sensor_lag_response`); on a slowly
+    varying reading the two are nearly alike (reported as a tie when the data cannot tell).
     ``onset``: offset and gain switch on at an unknown time (an abrupt fault).
     """
 
@@ -708,7 +709,8 @@ class SensorError(Effect):
     max_delay_s: float = 5.0
 
     def _shifted(self, ctx: ChannelContext, base: np.ndarray, v: float) -> np.ndarray:
-        corr = ctx.sensor_shift_response(self.sensor, v)
+        corr = (ctx.sensor_lag_response(self.sensor, v) if self.kind == "sensor_lag"
+                else ctx.sensor_shift_response(self.sensor, v))
         return base + np.where(np.isfinite(corr), corr, 0.0)
 
     def fit(self, ctx: ChannelContext, base: np.ndarray, train: np.ndarray, *,
@@ -751,6 +753,10 @@ class SensorError(Effect):
         sensor's units."""
         x = ctx.sensor_reading(self.sensor)
         value = float(params[SENSOR_KINDS[self.kind][1]])
+        if self.kind == "sensor_lag" and ctx.source is not None:
+            data = ctx.source[0]
+            return np.asarray(-value * smooth_derivative(x, data.t, data.segment,
+                                                         max(value, 0.05)), float)
         if self.kind in ("sensor_lag", "dead_time"):
             return np.asarray(x - ctx.sensor_reading(self.sensor, value), float)
         g = ctx.sensor_response(self.sensor, self._direction())

@@ -314,8 +314,10 @@ def _one_se_choice(scored: list[tuple[Effect, Candidate]], alpha: float
 
     Nested alternatives compete on parsimony (an always-on gain error vs the same gain
     switching on at some time), and a time-varying best (drift, piecewise in time) yields to a
-    dependence on a measured column within one standard error; other effects with different
-    physics compete on held-out error.
+    dependence on a measured column within one standard error; an input sensor's error yields
+    to the same kind of error of the channel within one standard error, and a dependence on an
+    input's slope to that input's lag or dead time unless it is significantly worse; other
+    effects with different physics compete on held-out error.
     """
     best = min(scored, key=lambda ec: np.nanmean(ec[1].mse_blocks))
     tol = 1e-3 * float(np.nanmean(best[1].mse_blocks))
@@ -333,6 +335,18 @@ def _one_se_choice(scored: list[tuple[Effect, Candidate]], alpha: float
                and eff.id == best[0].id and c.p_adjusted < alpha and within_one_se(c)]
         if own:
             best = min(own, key=lambda ec: np.nanmean(ec[1].mse_blocks))
+    column = str(getattr(best[0], "column", ""))
+    if best[0].id == "input_dependence" and column.startswith("d/dt "):
+        # the residual following the slope of one of the model's inputs is what a lag or
+        # dead time of that sensor produces (to first order the same explanation): unless it
+        # is significantly worse, the sensor's timing error is named (as many parameters, and
+        # it predicts through the model)
+        timing = [(eff, c) for eff, c in scored
+                  if getattr(eff, "sensor", "") == column[5:]
+                  and eff.id in ("sensor_lag", "dead_time") and c.p_adjusted < alpha
+                  and paired_p(c.mse_blocks, best[1].mse_blocks) >= alpha]
+        if timing:
+            best = min(timing, key=lambda ec: np.nanmean(ec[1].mse_blocks))
     if _time_varying(best[0]):
         # a change over time is accepted only if no measured column explains the same
         # residual: a dependence on a measured signal (few parameters, predicts new data)

@@ -23,10 +23,12 @@ table (:func:`isolate`); the paper's table and the one measured on our plant are
 
 from __future__ import annotations
 
-from collections import deque
+import math
+from collections import OrderedDict, deque
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -43,6 +45,9 @@ from fdi_ros.core.symptoms import calibrate_thresholds as _calibrate
 from fdi_ros.core.types import FeatureVector, ResidualVector
 from fdi_ros.plants.diesel.ecu import ACTUATOR_SETTLE_S, GATED_ACTUATORS, actuator_status
 from fdi_ros.plants.diesel.reference import ReferenceModelSet, wrap_phase
+
+if TYPE_CHECKING:
+    from fdi_ros.core.lolimot import Lolimot
 
 __all__ = ["RESIDUALS", "RESIDUAL_UNITS", "SYMPTOMS", "LEVEL_CODES", "PAPER_TABLE",
            "SymptomConfig", "SymptomState", "SymptomGenerator", "calibrate_thresholds",
@@ -178,6 +183,33 @@ def residual_vector(models: ReferenceModelSet, fv: FeatureVector, *, model_id: s
                           values=np.asarray(r, dtype=float), norm=norm)
 
 
+# (id of the reference set, segment) -> (reference set, residuals): see shared_residual_vector
+_SHARED: OrderedDict[tuple, tuple[ReferenceModelSet, ResidualVector]] = OrderedDict()
+SHARED_SEGMENTS = 64
+
+
+def shared_residual_vector(models: ReferenceModelSet, fv: FeatureVector, *,
+                           model_id: str) -> ResidualVector:
+    """:func:`residual_vector`, computed once per segment for every bank model of a process
+    that shares the reference set (``ReferenceModelSet.load`` keeps one per directory).
+
+    The parity residuals depend on the reference models and the feature vector alone, so a
+    model host holding the nominal model and several hypotheses evaluates the reference models
+    once per segment instead of once per node. The key is the whole feature vector (index,
+    times, validity, names and the values' bytes): a hit is the same computation.
+    """
+    key = (id(models), fv.index, fv.t_start, fv.t_end, fv.valid, fv.status, fv.names,
+           np.asarray(fv.values, dtype=float).tobytes())
+    hit = _SHARED.get(key)
+    if hit is None or hit[0] is not models:
+        hit = (models, residual_vector(models, fv, model_id=model_id))
+        _SHARED[key] = hit
+        if len(_SHARED) > SHARED_SEGMENTS:
+            _SHARED.popitem(last=False)
+    rv = hit[1]
+    return replace(rv, model_id=model_id, values=rv.values.copy())
+
+
 class QuasiStationarity:
     """Per-stream causal rates of n and p2, the storage correction of r_eta and the gate.
 
@@ -189,10 +221,10 @@ class QuasiStationarity:
 
     def __init__(self, config: SymptomConfig | None) -> None:
         self.config = config
-        lag = config.rate_lag if config is not None else 2
-        self._hist: deque = deque(maxlen=lag + 1)
-        self._inputs: deque = deque()   # (t, n, fuel) over the last settle_s
-        self._acts: deque = deque()     # (t, {actuator: command}) over ACTUATOR_SETTLE_S
+        self._lag = config.rate_lag if config is not None else 2
+        self._hist: deque[tuple[float, float, float]] = deque(maxlen=self._lag + 1)
+        self._inputs: deque[tuple[float, float, float]] = deque()  # (t, n, fuel), settle_s
+        self._acts: deque[tuple[float, dict[str, float]]] = deque()  # ACTUATOR_SETTLE_S
 
     @property
     def active(self) -> bool:
@@ -223,7 +255,7 @@ class QuasiStationarity:
                 self._inputs.popleft()
         while self._acts and self._acts[0][0] < t - ACTUATOR_SETTLE_S:
             self._acts.popleft()
-        if len(self._hist) < self._hist.maxlen:
+        if len(self._hist) < self._lag + 1:
             return float("nan"), float("nan")
         t0, n0, p0 = self._hist[0]
         dt = t - t0
@@ -236,11 +268,13 @@ class QuasiStationarity:
         c = self.config
         if c is None or c.settle_s <= 0:
             return True, 0.0, 0.0
-        arr = np.array(self._inputs)
-        if arr.shape[0] < 2 or arr[-1, 0] - arr[0, 0] < 0.8 * c.settle_s:
+        h = self._inputs  # plain min/max: this runs per segment and per bank model, live
+        if len(h) < 2 or h[-1][0] - h[0][0] < 0.8 * c.settle_s:
             return False, float("nan"), float("nan")
-        dn = float(np.ptp(arr[:, 1]))
-        df = float(np.ptp(arr[:, 2])) if np.all(np.isfinite(arr[:, 2])) else 0.0
+        ns = [x[1] for x in h]
+        fs = [x[2] for x in h]
+        dn = float(max(ns) - min(ns))
+        df = float(max(fs) - min(fs)) if all(math.isfinite(f) for f in fs) else 0.0
         return dn <= c.max_speed_change and df <= c.max_fuel_change, dn, df
 
     def actuators_moved(self) -> str:
@@ -255,9 +289,9 @@ class QuasiStationarity:
     def apply(self, fv: FeatureVector, r: np.ndarray, valid: bool,
               status: str) -> tuple[np.ndarray, bool, str]:
         """Correct r_eta and gate one segment (r from :func:`parity_residuals`)."""
-        if not self.active:
-            return r, valid, status
         c = self.config
+        if c is None or not self.active:
+            return r, valid, status
         _, dp = self.rates(fv)
         if not valid:
             return r, valid, status
@@ -364,7 +398,7 @@ class ReferenceResidualModel(_Batchable):
 
     def residuals(self, fv: FeatureVector) -> ResidualVector:
         cfg = self.config
-        rv = residual_vector(self.models, fv, model_id=self.model_id)
+        rv = shared_residual_vector(self.models, fv, model_id=self.model_id)
         rv = _finish(fv, *self._qs.apply(fv, rv.values, rv.valid, rv.status), cfg,
                      self.model_id)
         if self.window == 1 or not rv.valid or cfg is None:
@@ -392,7 +426,7 @@ class FaultHypothesisResidualModel(_Batchable):
     """
 
     def __init__(self, *, models: ReferenceModelSet, config: SymptomConfig, fault: str,
-                 directions: dict[str, object], model_id: str, window: int = 40,
+                 directions: Mapping[str, Lolimot], model_id: str, window: int = 40,
                  penalty: float = DEFAULT_PENALTY, min_effect: float = 1.0) -> None:
         if config is None:
             raise ValueError("a fault-hypothesis model needs the fault-free residual scales")
@@ -402,7 +436,7 @@ class FaultHypothesisResidualModel(_Batchable):
         if unknown:
             raise ValueError(f"directions for unknown residuals {sorted(unknown)}")
         self.models, self.config, self.fault = models, config, fault
-        self.directions = directions
+        self.directions = dict(directions)
         self.model_id = model_id
         self.window = int(window)
         self.penalty = float(penalty)
@@ -432,7 +466,7 @@ class FaultHypothesisResidualModel(_Batchable):
         return G
 
     def residuals(self, fv: FeatureVector) -> ResidualVector:
-        rv = residual_vector(self.models, fv, model_id=self.model_id)
+        rv = shared_residual_vector(self.models, fv, model_id=self.model_id)
         rv = _finish(fv, *self._qs.apply(fv, rv.values, rv.valid, rv.status), None,
                      self.model_id)
         if not rv.valid:
@@ -502,7 +536,7 @@ class FaultHypothesisResidualModel(_Batchable):
         return d
 
 
-def load_directions(directory) -> tuple[str, dict[str, object], dict]:
+def load_directions(directory: str | Path) -> tuple[str, dict[str, Lolimot], dict[str, Any]]:
     import json
 
     from fdi_ros.core.lolimot import Lolimot
@@ -566,10 +600,12 @@ def _register() -> None:
     @register_residual_model("diesel_fault_hypothesis")
     def _make_hypothesis(spec: dict, *, base_dir: Path,
                          model_id: str) -> FaultHypothesisResidualModel:
-        unknown = set(spec) - {"path", "hypothesis", "window", "penalty", "min_effect"}
+        # size: the fault size the bank builder identifies the hypothesis at (not used here)
+        unknown = set(spec) - {"path", "hypothesis", "window", "penalty", "min_effect", "size"}
         if unknown or "hypothesis" not in spec:
             raise ValueError("diesel_fault_hypothesis needs 'hypothesis:' (directory), "
-                             f"optional path/window/penalty; unknown keys {sorted(unknown)}")
+                             "optional path/window/penalty/min_effect/size; unknown keys "
+                             f"{sorted(unknown)}")
         d = base_dir / spec.get("path", ".")
         cfg = load_symptom_config(d)
         if cfg is None:
@@ -654,10 +690,10 @@ def calibrate_from_fault_free(models: ReferenceModelSet, features: Sequence[Feat
     if storage_correction and "storage_coeff" in models.info:
         coeff = float(models.info["storage_coeff"])   # identified with the static maps
     elif storage_correction and len(x) > 20:
-        x, r = np.asarray(x), np.asarray(r)
-        r = r - np.median(r)
-        den = float(x @ x)
-        coeff = float(x @ r / den) if den > 0 else 0.0
+        xa, ra = np.asarray(x), np.asarray(r)
+        ra = ra - np.median(ra)
+        den = float(xa @ xa)
+        coeff = float(xa @ ra / den) if den > 0 else 0.0
     gate = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(1.0,) * 5,
                          names=RESIDUALS,
                          rate_lag=rate_lag, storage_coeff=coeff,

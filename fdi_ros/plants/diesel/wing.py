@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -28,6 +29,10 @@ DEFAULT_SCENARIO = ROOT / "config" / "scenarios" / "diesel_paper_op.yaml"
 HYPOTHESIS_SIZES = {"crankcase_vent_open": 10.0, "leak_ic_engine": 5.0,
                     "restriction_ic_engine": 0.7, "swirl_flap_closed": 1.0,
                     "egr_stuck_open": 0.5, "egr_leaky": 4.0}
+# A size-specific hypothesis (bank entry fault ``<fault>_small`` / ``_large``, as the turbofan
+# bank sizes its faults) is identified at this multiple of the size above unless its model
+# spec names ``size:``; sizes are clipped to the plant's fault limits.
+SIZE_FACTORS = {"small": 0.5, "medium": 1.0, "large": 2.0}
 HYPOTHESIS_WINDOW = 40  # segments over which a hypothesis estimates its fault size (0.6 s)
 BUILD_INFO = "build_info.json"
 REFERENCE_FILES = ("reference_models.json", "thresholds.json")
@@ -125,7 +130,28 @@ def reference_fingerprint(ref_dir: str | Path) -> str:
     return h.hexdigest()[:16]
 
 
-def _hypothesis_current(spec: dict) -> bool:
+def hypothesis_fault(fault_id: str, spec: dict) -> tuple[str, float]:
+    """The plant fault and the size a hypothesis of bank fault ``fault_id`` is identified at:
+    ``leak_ic_engine`` -> (leak_ic_engine, 5 mm), ``leak_ic_engine_small`` -> (.., 2.5 mm),
+    or the spec's own ``size``."""
+    from fdi_ros.core.supervisor import fault_type
+    from fdi_ros.plants.diesel.plant import FAULT_LIMITS
+
+    fault = fault_type(fault_id)
+    if fault not in HYPOTHESIS_SIZES:
+        raise ValueError(f"bank fault {fault_id!r}: no diesel fault {fault!r}")
+    if spec.get("size") is not None:
+        size = float(spec["size"])
+    else:
+        word = fault_id[len(fault) + 1:] or "medium"
+        size = HYPOTHESIS_SIZES[fault] * SIZE_FACTORS[word]
+    lo, hi = FAULT_LIMITS[fault]
+    if not lo < size <= hi:
+        raise ValueError(f"bank fault {fault_id!r}: size {size:g} outside ({lo:g}, {hi:g}]")
+    return fault, size
+
+
+def _hypothesis_current(spec: dict, fault_id: str) -> bool:
     d = Path(spec["hypothesis"])
     if not (d / "hypothesis.json").exists() or not (d / BUILD_INFO).exists():
         return False
@@ -133,7 +159,10 @@ def _hypothesis_current(spec: dict) -> bool:
         info = json.loads((d / BUILD_INFO).read_text())
     except ValueError:
         return False
-    return bool(info.get("reference") == reference_fingerprint(spec["path"]))
+    fault, size = hypothesis_fault(fault_id, spec)
+    return bool(info.get("reference") == reference_fingerprint(spec["path"])
+                and info.get("fault", fault) == fault
+                and math.isclose(float(info.get("size", size)), size))
 
 
 def _reference_current(d: Path) -> bool:
@@ -162,7 +191,8 @@ def _missing(cfg: GraphConfig) -> list[tuple[str, dict]]:
         if spec.get("type") == "diesel_reference":
             if not _reference_current(Path(spec["path"])):
                 out.append((e.id, spec))
-        elif spec.get("type") == "diesel_fault_hypothesis" and not _hypothesis_current(spec):
+        elif spec.get("type") == "diesel_fault_hypothesis" and not _hypothesis_current(
+                spec, next(iter(e.faults), "")):
             out.append((e.id, spec))
     return out
 
@@ -196,9 +226,8 @@ def build_bank(cfg: GraphConfig, *, progress: bool = True, seed: int = 0,
         scfg = load_symptom_config(spec["path"])
         if scfg is None:
             raise ValueError(f"{spec['path']}: no thresholds for the hypothesis {mid!r}")
-        # the fault of this hypothesis: its bank entry's single fault
-        fault = next(iter(cfg.entry(mid).faults))
-        size = HYPOTHESIS_SIZES[fault]
+        # the fault of this hypothesis: its bank entry's single fault (sized or not)
+        fault, size = hypothesis_fault(next(iter(cfg.entry(mid).faults)), spec)
         log(f"[bank] identifying fault hypothesis {mid!r} ({fault} {size:g} "
             f"{FAULT_UNITS[fault]}) -> {spec['hypothesis']}")
         feats, _ = simulate_features(
@@ -226,6 +255,6 @@ WING = Wing(
     build_bank=build_bank,
     model_dir_spec=_reference_dir_spec,
     fst=ROOT / "config" / "diesel_fst.yaml",
-    reproduce="fdi_ros.commands.reproduce_diesel",
-    figures="fdi_ros.commands.figures_diesel",
+    reproduce="reproduce diesel",
+    figures="figures diesel-plant",
 )

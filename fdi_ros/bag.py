@@ -12,12 +12,15 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Final
 
 from fdi_ros import msgs
 from fdi_ros.core.types import Diagnosis, FaultEvent, FeatureVector, ResidualVector, SampleBlock
 
-BAG_VERSION = 9  # the rosbag2 metadata version Jazzy writes (QoS profiles as a YAML list)
+if TYPE_CHECKING:
+    from rosbags.rosbag2 import Writer
+
+BAG_VERSION: Final = 9  # the rosbag2 metadata version Jazzy writes (QoS profiles as a YAML list)
 ROS_DISTRO = "jazzy"
 # deadline / lifespan / lease "unset" as rosbag2 writes them (RMW_DURATION_INFINITE)
 _INFINITE = (9223372036, 854775807)
@@ -47,7 +50,8 @@ class BagWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._store = msgs.typestore()
         self._factory = msgs.MessageFactory("rosbags")
-        self._writer = Writer(self.path, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP)
+        self._writer: Writer | None = Writer(self.path, version=BAG_VERSION,
+                                             storage_plugin=StoragePlugin.MCAP)
         self._writer.open()
         self._conns: dict[tuple[str, str], Any] = {}
         self.count = 0
@@ -64,6 +68,11 @@ class BagWriter:
             self._writer = None
             _set_distro(self.path / "metadata.yaml")
 
+    def _open(self) -> Writer:
+        if self._writer is None:
+            raise ValueError(f"bag {self.path} is closed")
+        return self._writer
+
     def _conn(self, topic: str, msgtype: str, qos: list[dict] | None = None) -> Any:
         key = (topic, msgtype)
         if key not in self._conns:
@@ -71,7 +80,7 @@ class BagWriter:
                 profiles = [qos_profile(**q) for q in (qos or [default_qos(topic)])]
             except (KeyError, TypeError, ValueError):  # a policy rosbags has no name for
                 profiles = [qos_profile(**default_qos(topic))]
-            self._conns[key] = self._writer.add_connection(
+            self._conns[key] = self._open().add_connection(
                 topic, msgtype, typestore=self._store, offered_qos_profiles=profiles)
         return self._conns[key]
 
@@ -81,7 +90,8 @@ class BagWriter:
 
         ``qos``: the publishers' offered profiles (dicts of :func:`qos_profile` arguments),
         used when the topic is first written; default: the profile this package uses."""
-        self._writer.write(self._conn(topic, msgtype, qos), int(t_ns), data)
+        conn = self._conn(topic, msgtype, qos)
+        self._open().write(conn, int(t_ns), data)
         self.count += 1
 
     def write(self, topic: str, msgtype: str, msg: Any, t_ns: int) -> None:

@@ -58,18 +58,23 @@ class GraphWatcher:
             lambda m: self.seen.truth.append((now(), msgs.to_fault_event(m))), LATCHED_QOS)
         sub(DiagnosticArray, "/diagnostics",
             lambda m: self.seen.diagnostics.append((now(), m)), 50)
+
+        def on_features(m: Any) -> None:
+            self.seen.features.append((now(), (int(m.index), float(m.t_end_s))))
+
+        def on_block(m: Any) -> None:
+            self.seen.blocks.append((now(), float(m.stamp_s[-1])))
+
         if watch_features:
-            sub(Features, "/fdi/features",
-                lambda m: self.seen.features.append((now(), (int(m.index), float(m.t_end_s)))),
-                DATA_QOS)
+            sub(Features, "/fdi/features", on_features, DATA_QOS)
         if watch_blocks:
-            sub(SensorBlock, "/fdi/sensor_block",
-                lambda m: self.seen.blocks.append((now(), float(m.stamp_s[-1]))), DATA_QOS)
+            sub(SensorBlock, "/fdi/sensor_block", on_block, DATA_QOS)
         if watch_end:
             from std_msgs.msg import Header
 
             sub(Header, "/fdi/end_of_data",
                 lambda m: self.seen.end_of_data.append((now(), m)), LATCHED_QOS)
+        self._diag_pub = self.node.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._inject_cli: Any = None
         self._fac = msgs.MessageFactory("rclpy")
 
@@ -115,6 +120,22 @@ class GraphWatcher:
             return fut.result().current_state.label
         finally:
             self.node.destroy_client(cli)
+
+    def report(self, name: str, level: int, message: str, hardware_id: str = "",
+               timeout: float = 2.0) -> None:
+        """Publish one /diagnostics status (``level``: 0 OK, 1 WARN, 2 ERROR) and wait until
+        the readers acknowledged it (at most ``timeout`` s), e.g. a dead node seen by the
+        launcher before it stops the graph. Stamped with the last diagnosed plant time."""
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+        from rclpy.duration import Duration
+
+        d = self.last_diagnosis()
+        arr = DiagnosticArray(status=[DiagnosticStatus(
+            level=bytes([level]), name=name, message=message, hardware_id=hardware_id)])
+        arr.header.stamp.sec, arr.header.stamp.nanosec = msgs.stamp_fields(
+            d.t if d is not None else 0.0)
+        self._diag_pub.publish(arr)
+        self._diag_pub.wait_for_all_acked(Duration(seconds=timeout))
 
     def last_diagnosis(self) -> Any:
         return self.seen.diagnoses[-1][1] if self.seen.diagnoses else None

@@ -31,6 +31,8 @@ import yaml
 
 from fdi_ros.core.graphconfig import GraphConfig, Hosting, load_graph_config
 
+# node name of the launcher's own watcher (diagnosis events, end of data, /diagnostics reports)
+WATCHER = "fdi_launch_watcher"
 # node section name -> node module (fdi_ros.nodes.<module>)
 NODE_KINDS = {
     "fdi_plant": "plant_node",
@@ -65,13 +67,25 @@ class Graph:
     echo : callable receiving every prefixed output line (default: print).
     hosting : how the bank's model nodes are hosted (default: the configuration's ``hosting``;
         a dict replaces only the fields it names, e.g. ``{"mode": "container"}``).
+    extra_block_readers : readers of /fdi/sensor_block outside the graph (e.g. a watcher)
+        that the source waits for too.
+    watcher : node name of a watcher outside the graph (:class:`fdi_ros.graphwatch.
+        GraphWatcher`) whose reader of /fdi/diagnosis the supervisor waits for (None: none).
+
+    Start-up handshake: the source (plant or replayer) sends its first block once every
+    reader of the sensor blocks in the graph (preprocessor, supervisor, recorder) is matched
+    to it and the supervisor has said on ``/fdi/ready`` that the bank is active and every
+    reader of the features, residuals and diagnoses is there (the recorder too). So all
+    processes may start at once, under ``fdi-ros launch`` as under ``ros2 launch``, and no
+    part misses the first segments.
     """
 
     def __init__(self, config: str | Path, *, overrides: dict[str, dict] | None = None,
                  record: str | Path | None = None, replay: str | Path | None = None,
                  echo: Callable[[str], None] | None = print,
                  env: dict[str, str] | None = None,
-                 hosting: Hosting | dict[str, Any] | None = None) -> None:
+                 hosting: Hosting | dict[str, Any] | None = None, extra_block_readers: int = 0,
+                 watcher: str | None = None) -> None:
         self.config_path = Path(config).resolve()
         self.cfg: GraphConfig = load_graph_config(self.config_path)
         if isinstance(hosting, dict):  # some fields over the configuration's
@@ -107,6 +121,15 @@ class Graph:
             sections.setdefault("fdi_recorder", {})["bag"] = str(Path(record).resolve())
         else:
             sections.pop("fdi_recorder", None)
+        sections["fdi_supervisor"].setdefault("wait_for_readers", [
+            *(["fdi_recorder"] if record is not None else []),
+            *([f"{watcher}:/fdi/diagnosis"] if watcher else [])] or [""])
+        readers = sum(k in sections for k in ("fdi_preprocessor", "fdi_supervisor",
+                                              "fdi_recorder")) + extra_block_readers
+        for src in ("fdi_plant", "fdi_replayer"):
+            if src in sections:
+                sections[src].setdefault("min_subscribers", readers)
+                sections[src].setdefault("wait_for_ready", True)
         self.nodes: list[NodeProcess] = []
         # bank models first: the supervisor finds their services when it starts; each gets the
         # common section `fdi_models` (e.g. use_sim_time) and its own model
@@ -202,22 +225,23 @@ class Graph:
 
     def stop(self, timeout: float = 15.0) -> dict[str, int | None]:
         """SIGINT every node (the recorder last, so it sees everything), wait, kill leftovers."""
-        procs = [n for n in self.nodes if n.proc is not None and n.proc.poll() is None]
-        last = [n for n in procs if n.module == "recorder_node"]
-        first = [n for n in procs if n.module != "recorder_node"]
+        procs = [(n.module, p) for n in self.nodes if (p := n.proc) is not None
+                 and p.poll() is None]
+        last = [p for module, p in procs if module == "recorder_node"]
+        first = [p for module, p in procs if module != "recorder_node"]
         for group in (first, last):
-            for n in group:
+            for p in group:
                 try:
-                    os.killpg(n.proc.pid, signal.SIGINT)
+                    os.killpg(p.pid, signal.SIGINT)
                 except ProcessLookupError:
                     pass
             deadline = time.monotonic() + timeout
-            for n in group:
+            for p in group:
                 try:
-                    n.proc.wait(timeout=max(0.1, deadline - time.monotonic()))
+                    p.wait(timeout=max(0.1, deadline - time.monotonic()))
                 except subprocess.TimeoutExpired:
-                    os.killpg(n.proc.pid, signal.SIGKILL)
-                    n.proc.wait()
+                    os.killpg(p.pid, signal.SIGKILL)
+                    p.wait()
         shutil.rmtree(self._tmp, ignore_errors=True)
         return {n.name: (n.proc.returncode if n.proc else None) for n in self.nodes}
 
@@ -269,10 +293,14 @@ def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
     """``fdi-ros launch``: run until SIGINT / SIGTERM, until the data ends, or until
     the graph cannot go on (the recorder died, a node died past its respawn limit).
 
-    The source (plant or replayer) starts once every bank node is active; when its data ends
-    (the replayer's end-of-data event, the end of the plant's scenario) the launcher
-    waits for the last segment's diagnosis, stops the graph and exits 0. ``json_out`` gets the
-    diagnosis events of the run (the format of ``fdi-ros diagnose --json``'s ``events``).
+    Every process starts at once; the source (plant or replayer) sends its first block after
+    the start-up handshake (see :class:`Graph`). When its data ends (the end-of-data event on
+    ``/fdi/end_of_data``, of the replayer or of the plant at its scenario's end) the launcher
+    waits for the last segment's diagnosis, stops the graph and exits 0. A recorder that dies
+    is reported at once on ``/diagnostics`` (ERROR, "fdi_launch: recorder") before the graph
+    stops; so is any other node that dies (WARN while it is respawned, ERROR when that ends
+    the run). ``json_out`` gets the diagnosis events of the run (the format of
+    ``fdi-ros diagnose --json``'s ``events``).
     Exit status: 0 clean, 1 a node died (or the recorder could not record), 130/143 on
     SIGINT/SIGTERM.
     """
@@ -295,14 +323,10 @@ def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
         if source in {n.name for n in graph.nodes}:
             from fdi_ros.graphwatch import GraphWatcher
 
-            watcher = GraphWatcher("fdi_launch_watcher", watch_end=True)
-        graph.start(exclude=(source,))
-        # data starts once every bank node is active (nothing fed into a half bank)
-        pending = [e.node_name for e in graph.cfg.bank] if watcher is not None else []
-        started = watcher is None
+            watcher = GraphWatcher(WATCHER, watch_end=True)
+        graph.start()
         if watcher is None:
             log(f"no {source} in the graph: running until stopped")
-        replay_by = time.monotonic() + BANK_TIMEOUT_S
         attempts: dict[str, int] = {}
         due: dict[str, float] = {}
         end_seen_at: float | None = None
@@ -317,42 +341,39 @@ def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
                 if n.proc is None or code is None or n.name in due:
                     continue
                 if n.module == "recorder_node":
-                    log(f"the recorder exited (status {code}): the graph is not being "
-                        "recorded; stopping")
+                    why = (f"the recorder exited (status {code}): the graph is not being "
+                           "recorded; stopping")
+                    log(why)
+                    if watcher is not None:
+                        watcher.report("fdi_launch: recorder", 2, why, n.name)
                     status = 1
                 elif n.module in RESPAWN_MODULES and _died(code):
                     k = attempts.get(n.name, 0)
                     if k >= respawn.limit:
-                        log(f"{n.name} died (status {code}) and was restarted {k} times "
-                            "already: giving up")
+                        why = (f"{n.name} died (status {code}) and was restarted {k} times "
+                               "already: giving up")
                         status = 1
                     else:
                         d = respawn.delay(k)
-                        log(f"{n.name} died (status {code}); respawning in {d:.1f} s "
-                            f"(attempt {k + 1}/{respawn.limit})")
+                        why = (f"{n.name} died (status {code}); respawning in {d:.1f} s "
+                               f"(attempt {k + 1}/{respawn.limit})")
                         due[n.name] = now + d
                         attempts[n.name] = k + 1
+                    log(why)
+                    if watcher is not None:
+                        watcher.report(f"fdi_launch: {n.name}", 2 if status else 1, why, n.name)
                 elif _died(code):
                     log(f"{n.name} died (status {code}); stopping")
+                    if watcher is not None:
+                        watcher.report(f"fdi_launch: {n.name}", 2, f"{n.name} died (status "
+                                       f"{code}); stopping", n.name)
                     status = 1
             for name, t in list(due.items()):
                 if now >= t and not stop.is_set():
                     del due[name]
                     graph.start_node(name)
-            if not started and not due and status == 0:
-                if not pending:
-                    pass
-                elif watcher.lifecycle_state(pending[0], timeout=1.0) == "active":
-                    pending.pop(0)
-                elif now > replay_by:
-                    log(f"bank not active after {BANK_TIMEOUT_S:.0f} s "
-                        f"({', '.join(pending)}): starting {source} anyway")
-                    pending.clear()
-                if not pending:
-                    graph.start_node(source)
-                    started = True
             if watcher is not None:
-                if end_seen_at is None and _data_ended(graph, watcher):
+                if end_seen_at is None and watcher.seen.end_of_data:
                     end_seen_at = now
                     log("end of data: waiting for the last segment's diagnosis")
                 if end_seen_at is not None and _diagnosis_settled(watcher, end_seen_at, now):
@@ -378,15 +399,6 @@ def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
 # after the end of data: the last diagnosis is the one no new segment follows for this long
 SETTLE_S = 2.0
 END_TIMEOUT_S = 60.0
-BANK_TIMEOUT_S = 120.0
-
-
-def _data_ended(graph: Graph, watcher: Any) -> bool:
-    """The replayer's end-of-data event, or the plant's log line at the end of its scenario."""
-    if watcher.seen.end_of_data:
-        return True
-    n = graph.node(graph.source)
-    return n.proc is not None and any("scenario finished" in line for line in n.lines)
 
 
 def _diagnosis_settled(watcher: Any, end_at: float, now: float) -> bool:

@@ -88,38 +88,30 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
              log: Callable[[str], None] = lambda s: None,
              stop_after_isolation_s: float | None = None,
              hosting: Any = None) -> tuple[LiveRun, GraphWatcher]:
-    """Launch, bring the bank on line, start the plant (or replayer), watch until the source
-    finishes (or ``stop_after_isolation_s`` plant seconds after an isolation), stop.
+    """Launch (the source starts after the start-up handshake: the bank active, every reader
+    matched), watch until the source's end-of-data event (or ``stop_after_isolation_s`` plant
+    seconds after an isolation), stop.
 
     ``during(graph, watcher, run)`` is called on every watch iteration (tests kill nodes
     from it). ``hosting``: how the model nodes are hosted (:class:`fdi_ros.launcher.Graph`).
     Returns the run summary and the (closed) watcher with everything it saw.
     """
-    readers = 1 + (record is not None) + bool(watch_blocks)
-    # the bank is on line before the plant starts (checked below), so no start delay
+    # the source starts after the start-up handshake (see Graph), so no start delay
     over: dict[str, dict] = {"fdi_plant": {"realtime_factor": realtime_factor,
-                                           "min_subscribers": readers, "start_delay_s": 0.0},
-                             "fdi_replayer": {"rate": realtime_factor,
-                                              "min_subscribers": readers}}
+                                           "start_delay_s": 0.0},
+                             "fdi_replayer": {"rate": realtime_factor}}
     if scenario is not None:
         over["fdi_plant"]["scenario"] = str(Path(scenario).resolve())
     graph = Graph(config, overrides=over, record=record, replay=replay, echo=echo,
+                  extra_block_readers=int(watch_blocks), watcher="fdi_watcher",
                   hosting=hosting)
-    w = GraphWatcher(watch_features=watch_features, watch_blocks=watch_blocks)
+    w = GraphWatcher("fdi_watcher", watch_features=watch_features, watch_blocks=watch_blocks)
     run = LiveRun(bag=str(record) if record else None)
     bank = [e.id for e in graph.cfg.bank]
     source = graph.source
     wall0 = time.monotonic()
     try:
-        graph.start(exclude=(source,))
-        alive = lambda: all(v for k, v in graph.alive().items() if k != source)  # noqa: E731
-        try:
-            w.spin_until(lambda: bank_ready(w, bank), 90.0, "the bank's lifecycle states", alive)
-        except TimeoutError as exc:
-            raise TimeoutError(f"{exc}: {bank_report(w, bank)}") from None
-        log(f"bank ready in {time.monotonic() - wall0:.1f} s: "
-            f"{', '.join(graph.cfg.entry(m).node_name for m in bank)}")
-        graph.start_node(source)
+        graph.start()  # every process at once: the source waits for the handshake
         deadline = time.monotonic() + timeout_s
         last_state = ""
         online: tuple[str, ...] = ()
@@ -171,8 +163,7 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
                         f"{sw['on_line']}")
                 online = d.models_online
             src = graph.node(source)
-            finished = any("finished" in line for line in src.lines)
-            if finished and _quiet(w):
+            if w.seen.end_of_data and _quiet(w):
                 break
             if stop_after_isolation_s is not None and not math.isnan(run.isolation_t) \
                     and run.final_t >= run.isolation_t + stop_after_isolation_s:

@@ -18,7 +18,7 @@ import sys
 from collections.abc import Callable
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -280,6 +280,6 @@ def raw_header_stamp(raw: bytes) -> float:
     the bytes cannot hold one."""
     if len(raw) < 12:
         return math.nan
-    order = "little" if raw[1] & 1 else "big"
+    order: Literal["little", "big"] = "little" if raw[1] & 1 else "big"
     sec = int.from_bytes(raw[4:8], order, signed=True)
     return sec + int.from_bytes(raw[8:12], order) * 1e-9

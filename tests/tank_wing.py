@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from fdi_ros.core.plant_api import FaultQueue
+from fdi_ros.core.plant_api import FaultQueue, SampledRunner
 from fdi_ros.core.residual_models import register_residual_model
 from fdi_ros.core.types import FaultEvent, FeatureVector, ResidualVector, SampleBlock
 from fdi_ros.plants import Wing
@@ -44,8 +44,10 @@ def validate_fault(ev: FaultEvent) -> None:
         raise ValueError(f"sensor offset {ev.size} outside +-{OFFSET_LIMIT} m")
 
 
-class TankRunner:
+class TankRunner(SampledRunner):
     plant = "tank"
+    channels = CHANNELS
+    units = UNITS
 
     def __init__(self, scenario: Any = None, *, seed: int | None = None,
                  block_samples: int = 10) -> None:
@@ -54,19 +56,13 @@ class TankRunner:
         self.duration_s = float(sc.get("duration_s", 20.0))
         self._rng = np.random.default_rng(int(sc.get("seed", 0) if seed is None else seed))
         self._per_block = int(block_samples)
+        super().__init__(ts=TS)
         self._faults = FaultQueue()
-        self._truth = FaultQueue()
         self._offset = 0.0
         self._h = GAIN * command(0.0)
-        self._k = 0
-        self._index = 0
         for f in sc.get("faults", []):
             self.inject(FaultEvent(t=float(f["t"]), fault=f["fault"], size=float(f["size"]),
                                    size_unit="m"))
-
-    @property
-    def t(self) -> float:
-        return max(self._k - 1, 0) * TS
 
     @property
     def done(self) -> bool:
@@ -79,7 +75,7 @@ class TankRunner:
 
     def next_block(self) -> SampleBlock:
         n = self._per_block
-        t = (self._k + np.arange(n)) * TS
+        t = self._times(n)
         vals = np.empty((2, n))
         for j, tj in enumerate(t):
             for ev in self._faults.due(tj):
@@ -88,14 +84,7 @@ class TankRunner:
             vals[0, j] = u
             vals[1, j] = self._h + self._offset + self._rng.normal(0.0, NOISE)
             self._h += TS / TAU * (GAIN * u - self._h)
-        self._k += n
-        block = SampleBlock(plant="tank", index=self._index, t=t, alpha=np.empty(0),
-                            channels=CHANNELS, units=UNITS, values=vals)
-        self._index += 1
-        return block
-
-    def pop_truth(self) -> list[FaultEvent]:
-        return self._truth.due(self.t)
+        return self._emit(t, vals)
 
 
 class TankPreprocessor:

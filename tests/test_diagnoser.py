@@ -137,3 +137,4 @@ def test_no_isolation_while_the_believed_model_is_away(tmp_path):
     d = diag.update(40, 4.0, {"nominal": rv("nominal", 4.0, 0.0), "a": rv("a", 4.0, 1.0),
                               "b": rv("b", 4.0, 1.0)}).diagnosis
     assert d.state == "no_fault"
+

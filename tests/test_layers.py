@@ -1,5 +1,6 @@
 """Module layering of fdi_ros, read from the source (every import statement, function-level
-ones included): no import cycles; the core imports no plant wing, node, command or rclpy; no
+ones included, and every module named in a string to be imported by name): no import cycles;
+the core imports no plant wing, node, command or rclpy, not even through other modules; no
 plant is named in code (identifiers or strings, any case) outside the wings and the commands;
 every node file is thin (at most 150 lines)."""
 
@@ -44,6 +45,9 @@ def _imports(name: str, path: Path, known: set[str]) -> set[str]:
             subs = {f"{base}.{a.name}" for a in node.names} & known
             # "from pkg import mod" depends on pkg.mod (and on pkg only for its other names)
             out.update(subs if len(subs) == len(node.names) else subs | {base})
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) \
+                and node.value.partition(":")[0] in known:
+            out.add(node.value.partition(":")[0])  # imported by name ("module" or "module:attr")
     # "import a.b.c" depends on a.b.c; keep the longest known module name of each import
     resolved = set()
     for imp in out:
@@ -105,6 +109,15 @@ def test_cycle_finder_finds_a_planted_cycle():
     assert _cycles({"a": {"b"}, "b": set()}) == []
 
 
+def test_import_reader_sees_function_level_imports(tmp_path):
+    f = tmp_path / "m.py"
+    f.write_text("from fdi_ros import bag\n\n\ndef f():\n    from fdi_ros.plants import diesel\n"
+                 "    import rclpy.node\n    return {'k': 'fdi_ros.nodes.x:make'}\n")
+    got = _imports("fdi_ros.core.m", f, {"fdi_ros", "fdi_ros.bag", "fdi_ros.plants",
+                                          "fdi_ros.plants.diesel", "fdi_ros.nodes.x"})
+    assert got == {"fdi_ros.bag", "fdi_ros.plants.diesel", "rclpy", "fdi_ros.nodes.x"}
+
+
 def test_no_import_cycles():
     g = _graph()
     # a package importing its own sub-modules (re-exports) is not a cycle by itself
@@ -113,17 +126,26 @@ def test_no_import_cycles():
 
 
 def test_core_imports_no_plant_node_command_or_rclpy():
+    """Directly or through any module it imports (e.g. the bag reader)."""
     mods = _modules()
     known = set(mods)
+    direct = {m: _imports(m, p, known) for m, p in mods.items()}
     bad = []
-    for m, p in mods.items():
+    for m in mods:
         if not m.startswith("fdi_ros.core"):
             continue
-        for i in _imports(m, p, known):
-            if i.startswith(("fdi_ros.plants", "fdi_ros.nodes", "fdi_ros.commands",
-                             "fdi_ros.launcher", "fdi_ros.livegraph", "fdi_ros.graphwatch",
-                             "rclpy")) or i == "fdi_ros":
-                bad.append(f"{m} -> {i}")
+        seen: set[str] = set()
+        todo = [m]
+        while todo:
+            for i in direct.get(todo.pop(), ()):
+                if i not in seen:
+                    seen.add(i)
+                    todo.append(i)
+        bad += [f"{m} -> {i}" for i in sorted(seen)
+                if i.startswith(("fdi_ros.plants", "fdi_ros.nodes", "fdi_ros.commands",
+                                 "fdi_ros.launcher", "fdi_ros.livegraph",
+                                 "fdi_ros.graphwatch", "fdi_ros.cli", "rclpy"))
+                or i == "fdi_ros"]
     assert bad == []
 
 

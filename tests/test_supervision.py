@@ -242,3 +242,82 @@ def test_threshold_scale_live(diesel_bank):
     assert core.diag.symptom_gen.config.threshold == pytest.approx([1.5 * x for x in base])
     with pytest.raises(ValueError, match="threshold_scale"):
         core.set("threshold_scale", 0.0)
+
+
+def test_start_gate_names_what_is_missing_until_every_reader_is_there(tmp_path):
+    """The start-up handshake: no /fdi/ready until every on-line model is active, reads the
+    features and publishes residuals matched here, the preprocessor is matched and the named
+    readers (a recorder on every topic, a watcher on the diagnosis) are in the graph; a model
+    the driver gave up on (refused) is not waited for."""
+    from fdi_ros.core.bankdriver import ACTIVE, INACTIVE
+    from fdi_ros.core.graphconfig import load_graph_config
+    from fdi_ros.core.supervision import GATE_TOPICS, SupervisorCore
+
+    cfg_file = tmp_path / "config" / "toy.yaml"
+    cfg_file.parent.mkdir(exist_ok=True)
+    cfg_file.write_text(TOY)
+    core = SupervisorCore(load_graph_config(cfg_file))
+    online = list(core.diag.models_online)
+    nodes = [core.driver.nodes[m].node for m in online]
+    readers = ["fdi_recorder", "fdi_launch_watcher:/fdi/diagnosis"]
+    full_subs = {"/fdi/features": {*nodes, "fdi_supervisor", "fdi_recorder"},
+                 "/fdi/residuals": {"fdi_supervisor", "fdi_recorder"},
+                 "/fdi/diagnosis": {"fdi_recorder", "fdi_launch_watcher"}}
+    full_pubs = {"/fdi/features": {"fdi_preprocessor"}, "/fdi/residuals": set(nodes)}
+    full_matched = {"/fdi/features": 1, "/fdi/residuals": len(nodes)}
+    # nothing active yet: every model named
+    miss = core.waiting_for(full_pubs, full_subs, full_matched, readers)
+    assert all(any(n in m for m in miss) for n in nodes), miss
+    for mid in core.driver.nodes:
+        core.driver.on_get_result(mid, ACTIVE if mid in online else INACTIVE, 0.0)
+    assert core.waiting_for(full_pubs, full_subs, full_matched, readers) == []
+    rng = random.Random(7)
+    for _ in range(30):  # take away one random piece: it is named, nothing else
+        subs = {t: set(v) for t, v in full_subs.items()}
+        pubs = {t: set(v) for t, v in full_pubs.items()}
+        matched = dict(full_matched)
+        what = rng.choice(["sub", "pub", "matched"])
+        if what == "sub":
+            t = rng.choice(GATE_TOPICS)
+            gone = rng.choice(sorted(subs[t] - {"fdi_supervisor"}))
+            subs[t].discard(gone)
+            need = gone in nodes and t == "/fdi/features" or gone == "fdi_recorder" or \
+                gone == "fdi_launch_watcher" and t == "/fdi/diagnosis"
+        elif what == "pub":
+            gone = rng.choice(nodes)
+            pubs["/fdi/residuals"].discard(gone)
+            need = True
+        else:
+            t = rng.choice(sorted(matched))
+            matched[t] -= 1
+            gone, need = t, True
+        miss = core.waiting_for(pubs, subs, matched, readers)
+        assert bool(miss) == need, (what, gone, miss)
+        assert len(miss) <= 1, miss
+    # a refused model is out of the bank: not waited for
+    core.driver.on_change_result(online[-1], False, 1.0, ACTIVE)
+    less = {"/fdi/features": 1, "/fdi/residuals": len(nodes) - 1}
+    pubs = {"/fdi/features": {"fdi_preprocessor"}, "/fdi/residuals": set(nodes[:-1])}
+    assert core.waiting_for(pubs, full_subs, less, readers) == []
+
+
+def test_models_on_line_before_the_data_are_not_stale_at_its_first_segment(tmp_path):
+    """The start-up handshake activates the bank seconds before the first block: a model is
+    judged from the first features on, so the first segments are diagnosed on the whole bank
+    (as offline), not declared stale and skipped."""
+    core = _core(tmp_path)
+    ready = dict.fromkeys(core.driver.nodes, False)
+    core.tick(0.0, ready, None)  # the bank on line at wall 0
+    notes = []
+    for k in range(10):  # the data starts at wall 5
+        wall = 5.0 + 0.015 * k
+        notes += [a for a in core.tick(wall, ready, None) if hasattr(a, "text")]
+        _feed(core, k, 0.0, wall)
+    assert not [n.text for n in notes if "stale" in n.text], notes
+    assert core.last.state == "no_fault" and core.aligner.skipped == 0
+    # a model silent for model_wall_s while the features go on is stale (and away)
+    for k in range(10, 100):
+        wall = 5.0 + 0.015 * k
+        core.tick(wall, ready, None)
+        _feed(core, k, 0.0, wall, skip=("b",))
+    assert "residuals b" in core._stale and "b" not in core._expected()

@@ -24,7 +24,7 @@ def run(args: argparse.Namespace) -> int:
     names = []
     for info in pkgutil.iter_modules(commands.__path__):
         mod = importlib.import_module(f"{commands.__name__}.{info.name}")
-        words = getattr(mod, "COMMAND", ())
+        words: tuple[str, ...] = tuple(getattr(mod, "COMMAND", ()))
         if len(words) == 2 and words[0] == "bench" and words[1] != "all":
             names.append(words[1])
     out: dict[str, object] = {}

@@ -42,7 +42,9 @@ def _liu_record(data_dir: str, minutes: float):
         raise FileNotFoundError(f"no LiU-ICE CSV files in {d}")
     recs = [load_csv(d / n, mapping) for n in names]
     model = identify_liu_ice([load_csv(d / n, mapping) for n in LIU_ICE_FAULT_FREE])
-    ts, sigs, t_end = [], [], 0.0
+    ts: list[np.ndarray] = []
+    sigs: list[dict[str, np.ndarray]] = []
+    t_end = 0.0
     k = 0
     while t_end < 60.0 * minutes:
         r = recs[k % len(recs)]
@@ -79,8 +81,7 @@ def run(args: argparse.Namespace) -> int:
         model = sc.diesel_baseline()
         data = sc.plant_record(7, duration_s=60.0 * args.minutes)
     best = np.inf
-    res = None
-    for _ in range(args.repeat):
+    for _ in range(max(args.repeat, 1)):
         t0 = time.perf_counter()
         res, _ = discover(data, model)
         best = min(best, time.perf_counter() - t0)

@@ -78,10 +78,13 @@ def run(args: argparse.Namespace) -> int:
                             "DTAMB": (-5.0, 5.0), "PC": (45.5, 46.5)})
     t0 = time.perf_counter()
     gm = train_global(grid, progress=False)
-    out["training_small_grid"] = {"nodes": gm.report.n_nodes,
+    report = gm.report
+    if report is None:
+        raise RuntimeError("training returned no report")
+    out["training_small_grid"] = {"nodes": report.n_nodes,
                                   "seconds": round(time.perf_counter() - t0, 2),
                                   "seconds_per_node": round((time.perf_counter() - t0)
-                                                            / gm.report.n_nodes, 4)}
+                                                            / report.n_nodes, 4)}
     sc = tfb.Scenario(name="bench", events=((5.0, {"hub": "small"}),))
     sim = tfb.simulate_plant(sc)
     ids = [m.id for m in tfb.PAPER_BANK]

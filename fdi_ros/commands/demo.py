@@ -19,6 +19,7 @@ import json
 import shutil
 import time
 from pathlib import Path
+from typing import Any
 
 COMMAND = ("demo",)
 HELP = "the main job: diesel graph up, 5 mm leak injected, detected, isolated, bag, figure"
@@ -54,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     live, _ = run_live(args.config, scenario=args.scenario, record=bag_dir,
                        realtime_factor=args.realtime_factor, timeout_s=180,
                        echo=None if args.quiet else print, log=say)
-    summary = {"live": live.as_dict()}
+    summary: dict[str, Any] = {"live": live.as_dict()}
     say(f"bag recorded: {bag_dir}")
     # offline, the same core on the recorded bag
     from fdi_ros import bag

@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     scen = args.scenario
     if scen is None:
         scen = Path(__file__).resolve().parents[2] / "config" / "scenarios" / "diesel_ident.yaml"
-    written = []
+    written: list[str] = []
 
     # --- Fig. 4: one segment at 1200 rpm with the one-harmonic fit
     plant = DieselIntakePlant(seed=0 if args.seed is None else args.seed)

@@ -18,8 +18,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--replay", metavar="BAG", help="replay this bag instead of the plant")
     p.add_argument("--rate", type=float, default=1.0, help="replay rate (with --replay)")
     p.add_argument("--start-delay", type=float, default=None, metavar="S",
-                   help="the data source waits S more wall seconds once the bank is active "
-                        "(default: the configuration's, 0 for a replay)")
+                   help="the data source waits S more wall seconds after the start-up "
+                        "handshake (default: the configuration's, else 0)")
     p.add_argument("--json", metavar="OUT",
                    help="write the run's diagnosis events (as fdi-ros diagnose --json) to OUT")
     p.add_argument("--respawn-limit", type=int, default=5,
@@ -44,14 +44,9 @@ def hosting_overrides(args: argparse.Namespace) -> dict:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from fdi_ros.launcher import Graph, RespawnPolicy, run_until_interrupted
+    from fdi_ros.launcher import WATCHER, Graph, RespawnPolicy, run_until_interrupted
 
     over: dict[str, dict] = {"fdi_plant": {}, "fdi_replayer": {"rate": args.rate}}
-    if args.record:
-        # the source waits for the preprocessor and the recorder: the bag holds the data from
-        # its first block
-        for section in over.values():
-            section["min_subscribers"] = 2
     if args.start_delay is not None:
         if not args.start_delay >= 0:
             print("fdi-ros launch: --start-delay must be >= 0", file=sys.stderr)
@@ -68,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         graph = Graph(args.config, overrides=over, record=args.record, replay=args.replay,
-                      hosting=hosting_overrides(args))
+                      hosting=hosting_overrides(args), watcher=WATCHER)
     except ValueError as exc:
         print(f"fdi-ros launch: {exc}", file=sys.stderr)
         return 2

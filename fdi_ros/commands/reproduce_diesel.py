@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 COMMAND = ("reproduce", "diesel")
 HELP = "reproduce the diesel intake FDI experiment (symptoms, delays, false alarms, isolation)"
@@ -124,8 +125,8 @@ def evaluate_fault_run(states, feats, t_fault: float) -> dict:
     pre = [s for s in states[:k0] if s.valid and any(s.levels)]
     det = next((i for i in range(k0, len(states)) if states[i].valid and any(states[i].levels)),
                None)
-    res = {"false_symptom_segments_before": len(pre), "detected": det is not None,
-           "delay_s": None, "delay_segments": None}
+    res: dict[str, Any] = {"false_symptom_segments_before": len(pre),
+                           "detected": det is not None, "delay_s": None, "delay_segments": None}
     if det is not None:
         res["delay_s"] = round(feats[det].t_end - t_fault, 4)
         res["delay_segments"] = det - k0 + 1
@@ -280,7 +281,7 @@ def _write_plant_table(path, runs) -> None:
     doc = doc or {}
     doc["symptoms"] = list(SYMPTOMS)
     tables = doc.setdefault("tables", {})
-    plant = {}
+    plant: dict[str, str] = {}
     for r in runs:   # the smallest size of each fault gives its row (the one to catch first)
         plant.setdefault(r["fault"], signature_string(r["_sig"]))
     tables["plant"] = plant

@@ -4,14 +4,15 @@
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import Any
 
 from fdi_ros.core.types import Diagnosis
 
 
-def diagnosis_events(diagnoses: Iterable[Diagnosis]) -> list[dict]:
+def diagnosis_events(diagnoses: Iterable[Diagnosis]) -> list[dict[str, Any]]:
     """One event per change of state (with the model and candidates at that segment) and one
     per change of the models on line (a bank switch), in stream order."""
-    events: list[dict] = []
+    events: list[dict[str, Any]] = []
     last_state, last_online = None, None
     for d in diagnoses:
         if d.state != last_state:

@@ -40,7 +40,7 @@ class FaultRecord:
     counter_s: float = 0.0  # debounce: plant time isolated (to CONFIRMED) or passed (to HEALED)
     since_t_s: float = math.nan  # plant time the counter started
     previous: str = ""  # status to fall back to when a PREFAILED fault is dropped
-    freeze_frame: dict = field(default_factory=dict)
+    freeze_frame: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -177,5 +177,7 @@ class FaultStore:
         self.db.close()
 
 
-def record_dict(r: FaultRecord) -> dict:
-    return _jsonable({k: v for k, v in asdict(r).items() if k not in ("since_t_s",)})
+def record_dict(r: FaultRecord) -> dict[str, Any]:
+    """The record as JSON-ready data (non-finite numbers as null)."""
+    out: dict[str, Any] = _jsonable({k: v for k, v in asdict(r).items() if k != "since_t_s"})
+    return out

@@ -96,10 +96,10 @@ class GraphConfig:
     plant: str
     bank: tuple[BankEntry, ...]
     t0_s: float
-    symptoms: dict | None = None
+    symptoms: dict[str, Any] | None = None
     stale_s: float = math.inf
     node_timeout_s: float = 2.0
-    node_params: dict[str, dict] = field(default_factory=dict)
+    node_params: dict[str, dict[str, Any]] = field(default_factory=dict)
     hosting: Hosting = field(default_factory=Hosting)
 
     @property

@@ -14,11 +14,16 @@ from __future__ import annotations
 import bisect
 import json
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
 
 __all__ = ["LookupTable", "table_error"]
 
@@ -64,7 +69,7 @@ class LookupTable:
 
     @classmethod
     def from_model(cls, model: Callable[[np.ndarray], np.ndarray],
-                   breakpoints: Sequence[Sequence[float]], *,
+                   breakpoints: Sequence[ArrayLike], *,
                    region: Callable[[np.ndarray], np.ndarray] | None = None,
                    input_names: tuple[str, ...] = (), output_name: str = "y") -> LookupTable:
         """Sample ``model`` (a vectorised callable of (N, p) inputs) on the grid.
@@ -85,15 +90,17 @@ class LookupTable:
     def n_inputs(self) -> int:
         return len(self.breakpoints)
 
-    def _corners(self, X):
+    def _corners(self, points: ArrayLike
+                 ) -> tuple[list[NDArray[np.intp]], list[FloatArray], BoolArray, BoolArray]:
         """Lower node index and fractional position per input, after clamping."""
-        X = np.asarray(X, dtype=float)
+        X: FloatArray = np.asarray(points, dtype=float)
         if X.ndim == 1:
             X = X[None, :]
         if X.ndim != 2 or X.shape[1] != self.n_inputs:
             raise ValueError(f"expected (N, {self.n_inputs}) inputs, got shape {X.shape}")
-        idx, frac = [], []
-        inside = np.all(np.isfinite(X), axis=1)
+        idx: list[NDArray[np.intp]] = []
+        frac: list[FloatArray] = []
+        inside: BoolArray = np.all(np.isfinite(X), axis=1)
         for d, b in enumerate(self.breakpoints):
             x = np.nan_to_num(X[:, d], nan=b[0])
             inside &= (x >= b[0]) & (x <= b[-1])
@@ -103,7 +110,8 @@ class LookupTable:
             frac.append((xc - b[i]) / (b[i + 1] - b[i]))
         return idx, frac, inside, np.all(np.isfinite(X), axis=1)
 
-    def _interp(self, table, idx, frac) -> np.ndarray:
+    def _interp(self, table: FloatArray, idx: list[NDArray[np.intp]], frac: list[FloatArray]
+                ) -> FloatArray:
         out = np.zeros(idx[0].shape[0])
         for corner in range(2 ** self.n_inputs):
             w = np.ones_like(out)
@@ -115,17 +123,17 @@ class LookupTable:
             out += w * table[tuple(node)]
         return out
 
-    def __call__(self, X) -> np.ndarray:
+    def __call__(self, X: ArrayLike) -> FloatArray:
         """Interpolated values at (N, p) inputs (clamped at the edges; NaN rows give NaN)."""
         idx, frac, _, finite = self._corners(X)
         out = self._interp(self.values, idx, frac)
         out[~finite] = np.nan
         return out
 
-    def evaluate(self, X) -> tuple[np.ndarray, np.ndarray]:
+    def evaluate(self, points: ArrayLike) -> tuple[FloatArray, BoolArray]:
         """Values and validity flags: valid = within the breakpoints and the interpolated
         identified flag >= 0.5."""
-        X = np.asarray(X, dtype=float)
+        X: FloatArray = np.asarray(points, dtype=float)
         if X.size == self.n_inputs and X.ndim <= 2 and self.n_inputs == 2:
             v, ok = self.evaluate_point(float(X.flat[0]), float(X.flat[1]))
             return np.array([v]), np.array([ok])
@@ -164,14 +172,14 @@ class LookupTable:
         return v, bool(inside and idf >= 0.5)
 
     # ------------------------------------------------------------------ persistence
-    def to_dict(self) -> dict:
+    def to_dict(self) -> dict[str, Any]:
         """JSON-ready representation (the form an ECU calibration tool would import)."""
         return {"input_names": list(self.input_names), "output_name": self.output_name,
                 "breakpoints": [b.tolist() for b in self.breakpoints],
                 "values": self.values.tolist(), "identified": self.identified.tolist()}
 
     @classmethod
-    def from_dict(cls, d: dict) -> LookupTable:
+    def from_dict(cls, d: Mapping[str, Any]) -> LookupTable:
         try:
             return cls(breakpoints=tuple(np.asarray(b, dtype=float) for b in d["breakpoints"]),
                        values=np.asarray(d["values"], dtype=float),
@@ -181,27 +189,31 @@ class LookupTable:
         except (KeyError, TypeError) as exc:
             raise ValueError(f"not a look-up table: {exc}") from exc
 
-    def save(self, path) -> Path:
+    def save(self, path: str | Path) -> Path:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(self.to_dict()))
         return path
 
     @classmethod
-    def load(cls, path) -> LookupTable:
+    def load(cls, path: str | Path) -> LookupTable:
         from fdi_ros.core.files import read_document
 
-        return cls.from_dict(read_document(path, "look-up table", fmt="json"))
+        doc = read_document(path, "look-up table", fmt="json")
+        if not isinstance(doc, Mapping):
+            raise ValueError(f"{path}: not a look-up table (a JSON object is expected)")
+        return cls.from_dict(doc)
 
 
-def table_error(model: Callable[[np.ndarray], np.ndarray], table: LookupTable, X) -> dict:
+def table_error(model: Callable[[FloatArray], ArrayLike], table: LookupTable, points: ArrayLike
+                ) -> dict[str, float | int]:
     """Table-versus-model error on points X (only where the table is valid).
 
     Returns
     -------
     dict with ``rmse``, ``max_abs`` (output units), ``n_points`` used and ``nodes``.
     """
-    X = np.asarray(X, dtype=float)
+    X: FloatArray = np.asarray(points, dtype=float)
     vals, valid = table.evaluate(X)
     if not valid.any():
         return {"rmse": float("nan"), "max_abs": float("nan"), "n_points": 0,

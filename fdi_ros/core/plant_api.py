@@ -10,9 +10,11 @@ from __future__ import annotations
 
 from typing import Protocol
 
+import numpy as np
+
 from fdi_ros.core.types import FaultEvent, FeatureVector, SampleBlock
 
-__all__ = ["FaultQueue", "PlantRunner", "Preprocessor"]
+__all__ = ["FaultQueue", "PlantRunner", "Preprocessor", "SampledRunner"]
 
 
 class PlantRunner(Protocol):
@@ -36,6 +38,8 @@ class Preprocessor(Protocol):
 
     def mark_gap(self) -> None: ...  # blocks were lost before the next push
 
+    def reset(self) -> None: ...  # start over (a restarted source)
+
 
 class FaultQueue:
     """Fault events ordered by plant time; each is handed out once when time reaches it."""
@@ -54,3 +58,40 @@ class FaultQueue:
         out = [e for e in self._pending if e.t <= t]
         self._pending = [e for e in self._pending if e.t > t]
         return out
+
+
+class SampledRunner:
+    """The bookkeeping of a runner sampled at a fixed period ``ts`` (no crank angle): samples
+    and blocks counted, plant time of the last sample, ground truth handed out once plant time
+    reaches it (:attr:`_truth`). A subclass sets ``plant``, ``channels`` and ``units``, takes
+    the times of its next samples from :meth:`_times` and returns :meth:`_emit` of their
+    values (channels x samples)."""
+
+    plant: str
+    channels: tuple[str, ...]
+    units: tuple[str, ...]
+
+    def __init__(self, ts: float) -> None:
+        self.ts = float(ts)
+        self._k = 0  # samples emitted
+        self._index = 0  # blocks emitted
+        self._truth = FaultQueue()
+
+    @property
+    def t(self) -> float:
+        return max(self._k - 1, 0) * self.ts
+
+    def _times(self, n: int) -> np.ndarray:
+        """Plant times [s] of the next ``n`` samples."""
+        times: np.ndarray = (self._k + np.arange(n)) * self.ts
+        return times
+
+    def _emit(self, t: np.ndarray, values: np.ndarray) -> SampleBlock:
+        self._k += values.shape[1]
+        block = SampleBlock(plant=self.plant, index=self._index, t=t, alpha=np.empty(0),
+                            channels=self.channels, units=self.units, values=values)
+        self._index += 1
+        return block
+
+    def pop_truth(self) -> list[FaultEvent]:
+        return self._truth.due(self.t)

@@ -46,8 +46,9 @@ class ResidualModel(Protocol):
 
 Factory = Callable[..., ResidualModel]
 # Generic kinds of the core are imported on first use; wings' kinds through the registry.
-KINDS: Kinds[Factory] = Kinds("residual model",
-                              {"discrepancy_extended": "fdi_ros.core.discrepancy.residual"})
+# (registered here, by name: the discrepancy module does not import this one, no cycle)
+KINDS: Kinds[Factory] = Kinds("residual model", {
+    "discrepancy_extended": "fdi_ros.core.discrepancy.residual:make_residual_model"})
 SPEC_FILES = ("residual_model.yaml", "residual_model.json")
 
 

@@ -18,6 +18,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 
 @dataclass(frozen=True)
@@ -41,8 +42,8 @@ class Score:
     def isolation_accuracy(self) -> float | None:
         return self.isolated_correct / self.detected_faulty if self.detected_faulty else None
 
-    def as_dict(self) -> dict:
-        def r(x):
+    def as_dict(self) -> dict[str, int | float | None]:
+        def r(x: float | None) -> float | None:
             return None if x is None else round(float(x), 5)
 
         return {"fault_free_samples": self.fault_free_samples,
@@ -54,24 +55,24 @@ class Score:
                 "detection_delay_s": r(self.detection_delay_s)}
 
 
-def score(t: Sequence[float], detected: Sequence[bool], isolated: Sequence[str],
-          fault: str = "", onset_s: float = math.nan,
-          counted: Sequence[bool] | None = None) -> Score:
+def score(t: ArrayLike, detected: ArrayLike, isolated: ArrayLike, fault: str = "",
+          onset_s: float = math.nan, counted: ArrayLike | None = None) -> Score:
     """Score one run. ``fault`` "" means fault-free throughout; ``counted`` masks samples
     that take no part (e.g. the identification part of a fault-free record)."""
-    t = np.asarray(t, dtype=float)
-    det = np.asarray(detected, dtype=bool)
+    ts: NDArray[np.float64] = np.asarray(t, dtype=float)
+    det: NDArray[np.bool_] = np.asarray(detected, dtype=bool)
     iso = np.asarray(isolated, dtype=object)
-    if not (t.shape == det.shape == iso.shape):
+    if not (ts.shape == det.shape == iso.shape):
         raise ValueError("t, detected and isolated need one entry per sample")
-    use = np.ones(t.shape, dtype=bool) if counted is None else np.asarray(counted, dtype=bool)
-    faulty = (t >= onset_s) if fault else np.zeros(t.shape, dtype=bool)
+    use: NDArray[np.bool_] = (np.ones(ts.shape, dtype=np.bool_) if counted is None
+                              else np.asarray(counted, dtype=bool))
+    faulty: NDArray[np.bool_] = (ts >= onset_s) if fault else np.zeros(ts.shape, dtype=np.bool_)
     ff = use & ~faulty
     fy = use & faulty
     hit = fy & det
     delay = None
     if fault and hit.any():
-        delay = float(t[np.flatnonzero(hit)[0]] - onset_s)
+        delay = float(ts[np.flatnonzero(hit)[0]] - onset_s)
     return Score(fault_free_samples=int(ff.sum()), false_alarms=int((ff & det).sum()),
                  faulty_samples=int(fy.sum()), detected_faulty=int(hit.sum()),
                  isolated_correct=int((hit & (iso == fault)).sum()), detection_delay_s=delay)

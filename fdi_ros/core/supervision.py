@@ -15,11 +15,15 @@
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Iterable, Mapping
+from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field
 from typing import Any
 
-from fdi_ros.core.bankdriver import BankDriver, Note, label
+from fdi_ros.core.bankdriver import TIMEOUT, BankDriver, Note, label
+from fdi_ros.core.diagnoser import Diagnoser
+from fdi_ros.core.faultmemory import FaultMemory, FaultRecord
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 # The supervisor's parameters: name: (default, description, read_only, (min, max) or None)
@@ -50,7 +54,14 @@ PARAMS = {  # name: (default, description, read_only, (min, max) or None)
     "snapshot_s": (5.0, "plant s of data before a confirmation in its snapshot bag", True,
                    (0.0, 600.0)),
     "diagnostics_period_s": (1.0, "period of /diagnostics [wall s]", True, (0.05, 60.0)),
+    "wait_for_readers": ([""], "nodes that must read /fdi/features, /fdi/residuals and "
+                         "/fdi/diagnosis before /fdi/ready (a recorder), or 'node:/topic' one "
+                         "of them (a watcher: 'fdi_launch_watcher:/fdi/diagnosis')", True, None),
+    "ready_timeout_s": (120.0, "wall s after which /fdi/ready is sent with what is still "
+                        "missing named (a source must not wait forever)", True, (0.0, 1e6)),
 }
+# topics the start-up handshake looks at (who publishes and reads them)
+GATE_TOPICS = ("/fdi/features", "/fdi/residuals", "/fdi/diagnosis")
   # diagnostic_msgs/DiagnosticStatus levels
 
 
@@ -139,6 +150,7 @@ class Source:
     t: float = -math.inf  # plant time of the last message
     wall: float = math.nan  # wall time of its arrival (NaN: never seen)
     since_wall: float = math.nan  # wall time it became expected
+    first_wall: float = math.nan  # wall time of its first message
 
 
 @dataclass
@@ -154,6 +166,8 @@ class Staleness:
         s = self.sources.setdefault(name, Source())
         s.t = max(s.t, float(t))
         s.wall = wall
+        if math.isnan(s.first_wall):
+            s.first_wall = wall
         self.newest_t = max(self.newest_t, float(t))
 
     def expect(self, name: str, wall: float) -> None:
@@ -299,11 +313,6 @@ class SupervisorCore:
                  stale_s: float = 0.5, stale_wall_s: float = 2.0, model_wall_s: float = 1.0,
                  confirm_s: float = 0.1, heal_s: float = 5.0, store: Any = None,
                  snapshot_s: float = 5.0) -> None:
-        from collections import deque
-
-        from fdi_ros.core.diagnoser import Diagnoser
-        from fdi_ros.core.faultmemory import FaultMemory
-
         self.cfg = cfg
         self.diag = Diagnoser(cfg)
         self.driver = BankDriver([(e.id, e.node_name) for e in cfg.bank], policy)
@@ -316,13 +325,15 @@ class SupervisorCore:
         if store is not None:
             store.load(self.memory)
         self.last: Any = None
-        self._features: dict[int, dict] = {}
+        self._features: dict[int, dict[str, float]] = {}
         self._symptoms: dict[int, Any] = {}
         self._stale: dict[str, str] = {}
+        # what the start-up handshake still waits for (see waiting_for; set by the node)
+        self.waiting: list[str] = ["the first check"]
         # the last snapshot_s of plant time as core records (features, residuals, diagnoses),
         # for the snapshot bag written at a confirmation
         self.snapshot_s = snapshot_s
-        self.ring: deque = deque()
+        self.ring: deque[tuple[float, str, object]] = deque()
 
     @classmethod
     def from_params(cls, p: Mapping[str, Any]) -> SupervisorCore:
@@ -358,7 +369,7 @@ class SupervisorCore:
         if math.isfinite(t):  # a malformed block is not data
             self.inputs.seen("sensor_block", t, wall)
 
-    def features(self, fv: Any, wall: float) -> list:
+    def features(self, fv: Any, wall: float) -> list[object]:
         """A feature vector (:class:`fdi_ros.core.types.FeatureVector`) arrived."""
         self.inputs.seen("features", fv.t_end, wall)
         self.aligner.add_features(fv.index, fv.t_end)
@@ -379,7 +390,7 @@ class SupervisorCore:
             path, n = base.with_name(f"{base.name}.{n}"), n + 1
         return path
 
-    def residual(self, rv: Any, wall: float) -> list:
+    def residual(self, rv: Any, wall: float) -> list[object]:
         if rv.model_id not in self.driver.nodes:
             return []
         self.models.seen(f"residuals {rv.model_id}", rv.t, wall)
@@ -399,14 +410,19 @@ class SupervisorCore:
         return [m for m in self.diag.models_online if self.driver.live(m)
                 and f"residuals {m}" not in self._stale]
 
-    def _steps(self) -> list:
+    def _steps(self) -> list[object]:
         from dataclasses import replace
 
-        out: list = []
+        out: list[object] = []
         for st in self.aligner.ready(self._expected()):
             sym = self._symptoms.pop(st.index, None)
-            # A stale model (frozen, or gone without leaving the graph yet) is reported and
-            # left out, as a dead one is; no-elimination keeps it from causing a wrong isolation
+            # A silent model (frozen, overloaded, or gone without leaving the graph yet) is
+            # reported STALE and left out, as a dead one is: steps do not wait for it (the
+            # others would pile up). Dropping its residuals or blocking every isolation while
+            # it is away was tried and rejected: a model starved for model_wall_s on a busy
+            # machine then restarts the hold time T0 and delays a true isolation (a different
+            # diagnosis from the load alone); no-elimination already keeps the rest from
+            # isolating a fault the away model would explain, and names it "(model away)".
             skip = not st.complete
             step = self.diag.update(st.index, st.t, {} if skip else st.residuals,
                                     symptoms=None if skip else sym)
@@ -432,7 +448,7 @@ class SupervisorCore:
                 del self._features[old]
         return out
 
-    def _remember(self, d: Any, st: Step, sym: Any) -> list:
+    def _remember(self, d: Any, st: Step, sym: Any) -> list[object]:
         frame = {"features": self._features.get(st.index, {}),
                  "residuals": {m: {"norm": float(r.norm), "values": list(map(float, r.values))}
                                for m, r in st.residuals.items()},
@@ -470,21 +486,59 @@ class SupervisorCore:
             key = "policy" if name == "reconcile" else name
             self.driver.policy = replace(self.driver.policy, **{key: value})
 
-    def clear(self, faults: list[str]) -> list:
+    def clear(self, faults: list[str]) -> list[FaultRecord]:
         """Clear faults of the memory; clearing all restarts the diagnosis (initial bank)."""
         cleared = self.memory.clear(faults)
         if self.store is not None:
             self.store.save(cleared)
         if not faults:
-            from fdi_ros.core.diagnoser import Diagnoser
-
             self.diag = Diagnoser(self.cfg)
             self.driver.set_desired(self.diag.models_online)
         return cleared
 
+    # -- start-up handshake (graph state) -----------------------------------------------------
+    def waiting_for(self, pubs: Mapping[str, Iterable[str]], subs: Mapping[str, Iterable[str]],
+                    matched: Mapping[str, int], readers: Iterable[str] = ()) -> list[str]:
+        """What the graph still lacks before the data source may send its first block (empty:
+        ready). The source's first segments must reach every part that decides, or the
+        filters' warm-up (symptom debounce, hypothesis windows) would end at another segment
+        than offline, and live would differ from ``fdi-ros diagnose``.
+
+        ``pubs`` / ``subs``: node names publishing / reading each of :data:`GATE_TOPICS` as
+        the graph shows them; ``matched``: the publishers *matched* to this node's own
+        subscriptions (per topic); ``readers``: nodes that must read every gate topic (a
+        recorder), or ``"node:/topic"`` only that one (a watcher of the diagnosis).
+        Needed: every on-line model confirmed active (a model refused or in a state it cannot
+        leave is out of the bank and not waited for), reading the features and publishing
+        residuals, all of them matched here; the features' publisher matched here.
+        """
+        out: list[str] = []
+        live = 0
+        for m in self.diag.models_online:
+            v = self.driver.nodes[m]
+            if v.failed and not v.failed.startswith(TIMEOUT):
+                continue
+            if not self.driver.live(m):
+                out.append(f"{v.node} {label(v.observed)} (wanted active)")
+                continue
+            live += 1
+            for topic, seen in (("/fdi/features", subs), ("/fdi/residuals", pubs)):
+                if v.node not in set(seen.get(topic, ())):
+                    out.append(f"{v.node} on {topic}")
+        if matched.get("/fdi/features", 0) < 1:
+            out.append("a publisher of /fdi/features (the preprocessor)")
+        if matched.get("/fdi/residuals", 0) < live:
+            out.append(f"{matched.get('/fdi/residuals', 0)}/{live} residual publishers matched")
+        for r in (x for x in readers if x):
+            node, _, only = r.partition(":")
+            out += [f"{node} reading {t}" for t in ((only,) if only else GATE_TOPICS)
+                    if node not in set(subs.get(t, ()))]
+        return out
+
     # -- health (wall time) -------------------------------------------------------------------
-    def tick(self, now: float, ready: dict[str, bool], present: set[str] | None) -> list:
-        out: list = []
+    def tick(self, now: float, ready: dict[str, bool], present: AbstractSet[str] | None
+             ) -> list[object]:
+        out: list[object] = []
         for mid, v in self.driver.nodes.items():
             key = f"residuals {mid}"
             if self.driver.live(mid) and mid in self.diag.models_online:
@@ -503,14 +557,16 @@ class SupervisorCore:
 
     def _models_stale(self, now: float) -> dict[str, str]:
         """A model is stale when features kept coming for ``model_wall_s`` after its last
-        residuals (frozen or overloaded); without features no model is judged."""
+        residuals (frozen or overloaded); without features no model is judged. A model on
+        line before the data started is counted from the first features (the start-up
+        handshake activates the bank before the source sends anything)."""
         fw = self.inputs.sources.get("features")
         if fw is None or math.isnan(fw.wall):
             return {}
         out = {}
         for k, why in self.models.stale(now).items():
             s = self.models.sources[k]
-            last = s.wall if not math.isnan(s.wall) else s.since_wall
+            last = max(s.wall if not math.isnan(s.wall) else s.since_wall, fw.first_wall)
             if fw.wall - last > self.models.wall_timeout_s:
                 out[k] = why
         return out
@@ -522,4 +578,6 @@ class SupervisorCore:
                                  self.aligner.skipped > 0),
                  pipeline_entry(self.aligner, warn_lag)]
                 + input_entries(self.inputs, self._stale)
-                + model_entries(self.driver, self._stale))
+                + model_entries(self.driver, self._stale)
+                + [Entry(OK, "fdi_supervisor: start-up", "waiting for: " + "; ".join(
+                    self.waiting) if self.waiting else "graph ready (/fdi/ready sent)")])

@@ -22,10 +22,14 @@ A one-rule system is an affine model and its LM fit equals affine least squares 
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.optimize import least_squares
+
+Array = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -68,10 +72,11 @@ class TakagiSugeno(_TSParameters):
     def n_rules(self) -> int:
         return int(self.centers.shape[0])
 
-    def normalise(self, x: np.ndarray) -> np.ndarray:
-        return (np.asarray(x, dtype=float) - self.offset) / self.scale
+    def normalise(self, x: Array) -> Array:
+        z: Array = (np.asarray(x, dtype=float) - self.offset) / self.scale
+        return z
 
-    def __call__(self, x: np.ndarray) -> np.ndarray:
+    def __call__(self, x: Array) -> Array:
         """f(x) for raw inputs x (..., n_in)."""
         return _evaluate(self.normalise(x), self.premise, self.centers, self.sigmas,
                          self.coef)[0]
@@ -84,16 +89,17 @@ class TakagiSugeno(_TSParameters):
         return TakagiSugeno(centers=c, sigmas=np.abs(s), coef=a, offset=self.offset,
                             scale=self.scale, premise=self.premise)
 
-    def jacobian(self, x: np.ndarray) -> np.ndarray:
+    def jacobian(self, x: Array) -> Array:
         """Analytic d f(x_k) / d theta, shape (n, 2R + R (n_in + 1))."""
         return _jacobian(self.normalise(x), self.premise, self.centers, self.sigmas, self.coef)
 
 
-def _split(theta, r, n_in):
+def _split(theta: Array, r: int, n_in: int) -> tuple[Array, Array, Array]:
     return theta[:r], theta[r:2 * r], theta[2 * r:].reshape(r, n_in + 1)
 
 
-def _evaluate(z, premise, c, s, a):
+def _evaluate(z: Array, premise: int, c: Array, s: Array, a: Array
+              ) -> tuple[Array, Array, Array, Array]:
     """f, normalised strengths xi (..., R), consequents g (..., R), regressors phi (..., n+1)."""
     zp = z[..., premise, None]
     logw = -0.5 * ((zp - c) / s) ** 2
@@ -105,7 +111,7 @@ def _evaluate(z, premise, c, s, a):
     return (xi * g).sum(axis=-1), xi, g, phi
 
 
-def _jacobian(z, premise, c, s, a):
+def _jacobian(z: Array, premise: int, c: Array, s: Array, a: Array) -> Array:
     f, xi, g, phi = _evaluate(z, premise, c, s, a)
     d = z[..., premise, None] - c
     common = xi * (g - f[..., None])
@@ -181,13 +187,13 @@ def fit_ts(x: np.ndarray, y: np.ndarray, *, n_rules: int = 3, premise: int = 0,
     z = (x - offset) / scale
     history: list[float] = []
 
-    def fun(theta):
+    def fun(theta: Array) -> Array:
         c, s, a = _split(theta, n_rules, x.shape[1])
-        r = _evaluate(z, premise, c, s, a)[0] - y
+        r: Array = _evaluate(z, premise, c, s, a)[0] - y
         history.append(0.5 * float(r @ r))
         return r
 
-    def jac(theta):
+    def jac(theta: Array) -> Array:
         c, s, a = _split(theta, n_rules, x.shape[1])
         return _jacobian(z, premise, c, s, a)
 
@@ -220,12 +226,13 @@ class StackedTS(_TSParameters):
                    coef=np.stack([m.coef for m in models]), offset=first.offset,
                    scale=first.scale, premise=first.premise)
 
-    def take(self, index) -> StackedTS:
+    def take(self, index: int | slice | Sequence[int] | NDArray[np.intp]) -> StackedTS:
+        """The stacked systems at ``index`` of the first batch axis."""
         return StackedTS(centers=self.centers[index], sigmas=self.sigmas[index],
                          coef=self.coef[index], offset=self.offset, scale=self.scale,
                          premise=self.premise)
 
-    def __call__(self, x: np.ndarray) -> np.ndarray:
+    def __call__(self, x: Array) -> Array:
         """Evaluate every stacked model at inputs x broadcastable to (..., n_in)."""
-        z = (np.asarray(x, dtype=float) - self.offset) / self.scale
+        z: Array = (np.asarray(x, dtype=float) - self.offset) / self.scale
         return _evaluate(z, self.premise, self.centers, self.sigmas, self.coef)[0]

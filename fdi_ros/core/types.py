@@ -7,6 +7,7 @@ records, so the numerical core never needs a ROS type. ``fdi_ros.msgs`` converts
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -47,9 +48,10 @@ class SampleBlock:
     def channel(self, name: str) -> np.ndarray:
         """Samples of one channel by name."""
         try:
-            return self.values[self.channels.index(name)]
+            row: np.ndarray = self.values[self.channels.index(name)]
         except ValueError:
             raise KeyError(f"channel {name!r} not in block (has {self.channels})") from None
+        return row
 
 
 @dataclass(frozen=True)
@@ -146,4 +148,4 @@ class Diagnosis:
     models_online: tuple[str, ...] = ()
     detection_time: float = float("nan")
     isolation_time: float = float("nan")
-    extra: dict = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)

@@ -25,7 +25,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from fdi_ros.nodes.spin import DRAIN_S, ensure_loopback_env, run_node
 
 __all__ = ["DATA_QOS", "DRAIN_S", "LATCHED_QOS", "REQUEST_QOS", "ClockOut", "Param",
-           "declare_params", "ensure_loopback_env", "follow_rate", "run_node"]
+           "declare_params", "ensure_loopback_env", "follow_rate", "required",
+           "run_node"]
 
 # Data streams: reliable with a deep queue, so a busy 2-core machine delays rather than drops.
 DATA_QOS = QoSProfile(depth=500, history=HistoryPolicy.KEEP_LAST,
@@ -58,6 +59,11 @@ class Param:
     read_only: bool = False
     range: tuple[float, float] | None = None
     check: Callable[[Any], str | None] | None = None
+
+
+def required(value: Any) -> str | None:
+    """A ``Param.check`` for a parameter that must be given (not empty)."""
+    return None if value else "is required (no value given)"
 
 
 def declare_params(node: Any, params: Sequence[Param]) -> None:

@@ -6,6 +6,9 @@ by ``realtime_factor`` x the elapsed wall time (0 = as fast as the graph takes i
 applies from that moment on, see :class:`fdi_ros.core.pacing.Pacer`); every block is published on
 ``/fdi/sensor_block`` and plant time on ``/clock`` (the other nodes may run on it with
 ``use_sim_time``; the plant itself keeps wall time). Every message is stamped in plant time.
+Plant time starts at the source gate (:class:`fdi_ros.nodes.startup.SourceGate`: matched
+readers, the supervisor's ``/fdi/ready``); at the scenario's end the plant publishes the
+end-of-data event on ``/fdi/end_of_data``.
 
 Faults are injected at run time on ``/fdi/fault_inject`` (reliable, volatile: default and
 transient-local publishers both match) and through the service ``/fdi/inject_fault``
@@ -37,6 +40,7 @@ from fdi_ros.nodes.common import (
     follow_rate,
     run_node,
 )
+from fdi_ros.nodes.startup import SOURCE_PARAMS, SourceGate
 from fdi_ros.plants import fault_rules, make_runner
 
 
@@ -56,12 +60,7 @@ PARAMS = (
     Param("publish_clock", True, "publish plant time on /clock", read_only=True),
     Param("max_blocks_per_tick", 50, "blocks published per 10 ms timer tick at most (bounds a "
           "burst when the plant falls behind)", range=(1, 100_000)),
-    Param("min_subscribers", 1, "plant time starts once this many readers of /fdi/sensor_block "
-          "are matched (DDS discovery takes ~0.3-3 s; earlier blocks would be lost)",
-          range=(0, 1000)),
-    Param("start_delay_s", 0.0, "wall seconds to wait, once the readers are matched, before "
-          "plant time starts (time for a large bank to come on line)", read_only=True,
-          range=(0.0, 3600.0)),
+    *SOURCE_PARAMS,
 )
 
 
@@ -86,7 +85,8 @@ class PlantNode(Node):
         self.create_service(InjectFault, "/fdi/inject_fault", self._on_inject_service)
         self._pacer = Pacer(float(p("realtime_factor").value))
         follow_rate(self, self._pacer, "realtime_factor", lambda: self.runner.t, "t =")
-        self._finished = False
+        self._gate = SourceGate(self, self._pub)
+        self._finished, self._sent = False, 0
         self.create_timer(0.01, self._tick)
         self.create_timer(1.0, self._publish_diagnostics)
         self.get_logger().info(f"plant {self.runner.plant!r} ready, scenario "
@@ -119,15 +119,13 @@ class PlantNode(Node):
         if self._finished:
             return
         now = time.monotonic()
-        readers = self._pub.get_subscription_count()
-        if not self._pacer.start_when_ready(
-                now, self.runner.t, delay_s=float(self.get_parameter("start_delay_s").value),
-                readers_ok=readers >= int(self.get_parameter("min_subscribers").value)):
-            return
+        if not self._gate.check(now, self._pacer, self.runner.t):
+            return  # nothing published into the void (see SourceGate)
         target = self._pacer.target(now)
         for _ in range(int(self.get_parameter("max_blocks_per_tick").value)):
             if self.runner.done:
                 self._finished = True
+                self._gate.end(round(self.runner.t * 1e9), self._sent)
                 self.get_logger().info(f"scenario finished at t = {self.runner.t:.3f} s")
                 return
             if self.runner.t >= target:
@@ -137,6 +135,7 @@ class PlantNode(Node):
                 self._truth.publish(self._fac.fault_event(ev))
                 self.get_logger().info(f"fault active: {describe(ev)}")
             self._pub.publish(self._fac.sensor_block(block))
+            self._sent += 1
             self._clock_out.publish(msgs.stamp_fields(float(block.t[-1])))
 
 

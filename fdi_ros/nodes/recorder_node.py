@@ -12,13 +12,21 @@ Parameters: ``bag`` (output directory, required), ``topics`` (extra topics; defa
 from __future__ import annotations
 
 import threading
+from functools import partial
 from typing import Any
 
 from rclpy.node import Node
 
 from fdi_ros import msgs
 from fdi_ros.bag import BagWriter
-from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, Param, declare_params, run_node
+from fdi_ros.nodes.common import (
+    DATA_QOS,
+    LATCHED_QOS,
+    Param,
+    declare_params,
+    required,
+    run_node,
+)
 
 # Known types we can record; topics carrying them are picked up wherever they appear.
 RECORDABLE = {**msgs.TOPICS, "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
@@ -26,7 +34,8 @@ RECORDABLE = {**msgs.TOPICS, "/diagnostics": "diagnostic_msgs/msg/DiagnosticArra
 
 
 PARAMS = (
-    Param("bag", "", "output bag directory (rosbag2, MCAP); required", read_only=True),
+    Param("bag", "", "output bag directory (rosbag2, MCAP); required", read_only=True,
+          check=required),
     Param("topics", [""], "extra topics to record besides the known ones", read_only=True),
     Param("scan_period_s", 0.5, "period of the graph scan for new topics [s]", read_only=True,
           range=(0.01, 60.0)),
@@ -45,8 +54,6 @@ class RecorderNode(Node):
         super().__init__("fdi_recorder")
         declare_params(self, PARAMS)
         path = self.get_parameter("bag").value
-        if not path:
-            raise ValueError("parameter 'bag' (output bag directory) is required")
         extra = [t for t in self.get_parameter("topics").value if t]
         self._lock = threading.Lock()
         self._writer: BagWriter | None = BagWriter(path)
@@ -69,7 +76,7 @@ class RecorderNode(Node):
         qos = LATCHED_QOS if topic.startswith("/fdi/fault_") else DATA_QOS
         cls = _msg_class(msgtype)
         self._subs[topic] = self.create_subscription(
-            cls, topic, lambda data, t=topic, m=msgtype: self._on_msg(t, m, data), qos, raw=True)
+            cls, topic, partial(self._on_msg, topic, msgtype), qos, raw=True)
 
     def _scan(self) -> None:
         for topic, types in self.get_topic_names_and_types():

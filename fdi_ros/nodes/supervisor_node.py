@@ -1,15 +1,13 @@
 """Expert supervisor node: the ROS edge of :class:`fdi_ros.core.supervision.SupervisorCore`.
-
 Parameters, subscriptions (features, residuals, sensor-block stamps, every bank node's
-``transition_event``), lifecycle service clients (async only), the fault-memory services
-``/fdi/get_faults`` and ``/fdi/clear_faults``, timers; messages become core events and core
-actions become service calls and publications. All decisions are in the core.
-"""
+``transition_event``), async lifecycle clients, ``/fdi/get_faults``, ``/fdi/clear_faults``,
+``/fdi/ready`` (start-up handshake), timers. All decisions are in the core."""
 
 from __future__ import annotations
 
 import time
-from typing import Any
+from functools import partial
+from typing import Any, cast
 
 from diagnostic_msgs.msg import DiagnosticArray
 from fdi_msgs.msg import Diagnosis, Features, Residuals, SensorBlock, Symptoms
@@ -17,20 +15,22 @@ from fdi_msgs.srv import ClearFaults, GetFaults
 from lifecycle_msgs.msg import TransitionEvent
 from lifecycle_msgs.srv import ChangeState as CS
 from lifecycle_msgs.srv import GetState as GS
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.logging import get_logger
 from rclpy.node import Node
+from std_msgs.msg import Header
 
 from fdi_ros import bag, msgs
 from fdi_ros.core.bankdriver import ChangeState, GetState, Note
-from fdi_ros.core.supervision import PARAMS, Publish, SupervisorCore
-from fdi_ros.nodes.common import DATA_QOS, run_node
+from fdi_ros.core.supervision import GATE_TOPICS, PARAMS, Publish, SupervisorCore
+from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, run_node
+from fdi_ros.nodes.startup import READY_TOPIC, declare_table
 
 
 class SupervisorNode(Node):
     def __init__(self) -> None:
         super().__init__("fdi_supervisor")
-        p = {k: self._declare(k, *v) for k, v in PARAMS.items()}
+        p = declare_table(self, PARAMS)
         self.core = SupervisorCore.from_params(p)
         self.add_on_set_parameters_callback(self._on_set)
         self._fac = msgs.MessageFactory("rclpy")
@@ -40,36 +40,40 @@ class SupervisorNode(Node):
         for e in self.core.cfg.bank:
             self.clients_[e.id] = (self.create_client(CS, f"/{e.node_name}/change_state"),
                                    self.create_client(GS, f"/{e.node_name}/get_state"))
-            self.create_subscription(
-                TransitionEvent, f"/{e.node_name}/transition_event",
-                lambda m, i=e.id: self._do(self.core.driver.on_transition_event(
-                    i, m.start_state.id, m.goal_state.id, time.monotonic())), 10)
+            self.create_subscription(TransitionEvent, f"/{e.node_name}/transition_event",
+                                     partial(self._on_transition, e.id), 10)
         self.pub = {"symptoms": self.create_publisher(Symptoms, "/fdi/symptoms", DATA_QOS),
                     "diagnosis": self.create_publisher(Diagnosis, "/fdi/diagnosis", DATA_QOS),
-                    "ros": self.create_publisher(DiagnosticArray, "/diagnostics", 10)}
-        self.create_subscription(Residuals, "/fdi/residuals",
-                                 self._safe(msgs.to_residuals, self.core.residual), DATA_QOS)
-        self.create_subscription(Features, "/fdi/features",
-                                 self._safe(msgs.to_features, self.core.features), DATA_QOS)
-        self.create_subscription(SensorBlock, "/fdi/sensor_block",
-                                 self._on_block, DATA_QOS, raw=True)
-        self.create_service(GetFaults, "/fdi/get_faults", self._get_faults)
+                    "ros": self.create_publisher(DiagnosticArray, "/diagnostics", 10),
+                    "ready": self.create_publisher(Header, READY_TOPIC, LATCHED_QOS)}
+        self._subs = {t: self.create_subscription(c, t, self._safe(f, g), DATA_QOS) for t, c, f, g
+                      in (("/fdi/residuals", Residuals, msgs.to_residuals, self.core.residual),
+                          ("/fdi/features", Features, msgs.to_features, self.core.features))}
+        self.create_subscription(SensorBlock, "/fdi/sensor_block", lambda raw: self.core.block(
+            msgs.raw_header_stamp(cast(bytes, raw)), time.monotonic()), DATA_QOS, raw=True)
+        self.create_service(GetFaults, "/fdi/get_faults", lambda q, r: GetFaults.Response(
+            faults=msgs.fault_records(self.core.memory.records.values())))
         self.create_service(ClearFaults, "/fdi/clear_faults", self._clear_faults)
-        # One thread: answers, data and timers never run concurrently (no locks); every
-        # service call is async, so nothing blocks the executor.
-        self.create_timer(0.05, lambda: self._do(self.core.tick(time.monotonic(), {
-            i: c.service_is_ready() and g.service_is_ready() for i, (c, g) in
-            self.clients_.items()}, {n for n, _ in self.get_node_names_and_namespaces()})))
+        self._gate: tuple[float, list] | None = (time.monotonic() + p["ready_timeout_s"],
+                                                 list(p["wait_for_readers"]))
+        self.create_timer(0.05, self._tick)
         self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
-        self.get_logger().info(f"fault memory {self.core.store.path} "
-                               f"({len(self.core.memory.records)} records)")
+        self.get_logger().info(f"fault memory {self.core.store.path} ({len(self.core.memory.records)} records)")  # noqa: E501
 
-    def _declare(self, name: str, default: Any, text: str, ro: bool, rng: Any) -> Any:
-        d = ParameterDescriptor(name=name, description=text, read_only=ro)
-        if rng is not None:
-            d.floating_point_range = [FloatingPointRange(from_value=rng[0], to_value=rng[1])]
-        value = self.declare_parameter(name, default, d).value
-        return float(value) if isinstance(default, float) else value
+    def _tick(self) -> None:
+        now = time.monotonic()
+        self._do(self.core.tick(now, {i: c.service_is_ready() and g.service_is_ready() for i, (
+            c, g) in self.clients_.items()}, {n for n, _ in self.get_node_names_and_namespaces()}))
+        if self._gate is not None:  # the start-up handshake, until the source may start
+            pubs, subs = ({t: {i.node_name for i in f(t)} for t in GATE_TOPICS} for f in (
+                self.get_publishers_info_by_topic, self.get_subscriptions_info_by_topic))
+            self.core.waiting = self.core.waiting_for(pubs, subs, {
+                t: s.get_publisher_count() for t, s in self._subs.items()}, self._gate[1])
+            if not self.core.waiting or now > self._gate[0]:
+                self.get_logger().info("graph ready" if not self.core.waiting else "ready after "
+                                       f"ready_timeout_s without: {'; '.join(self.core.waiting)}")
+                self.pub["ready"].publish(Header(frame_id="ready"))
+                self._gate = None
 
     def _on_set(self, params: list) -> SetParametersResult:
         try:
@@ -88,14 +92,15 @@ class SupervisorNode(Node):
             self._do(feed(rec, time.monotonic()))
         return callback
 
-    def _on_block(self, raw: bytes) -> None:  # only the stamp matters: no deserialisation
-        self.core.block(msgs.raw_header_stamp(raw), time.monotonic())
+    def _on_transition(self, model_id: str, m: Any) -> None:
+        self._do(self.core.driver.on_transition_event(model_id, m.start_state.id,
+                                                      m.goal_state.id, time.monotonic()))
 
-    def _do(self, actions: list) -> None:
+    def _do(self, actions: list[object]) -> None:
         for a in actions:
             if isinstance(a, (ChangeState, GetState)):
                 cli = self.clients_[a.model_id][isinstance(a, GetState)]
-                req = cli.srv_type.Request()
+                req = (GS if isinstance(a, GetState) else CS).Request()
                 if isinstance(a, ChangeState):
                     req.transition.id = a.transition
                 cli.call_async(req).add_done_callback(lambda f, a=a: self._done(f, a))
@@ -106,10 +111,9 @@ class SupervisorNode(Node):
             elif isinstance(a, Publish) and a.what == "confirmed":
                 self.get_logger().info(bag.write_snapshot(self.core.snapshot_path(a.value),
                                                           self.core.ring))
-            elif isinstance(a, Publish) and a.what == "diagnosis":
-                self.pub["diagnosis"].publish(self._fac.diagnosis(a.value))
-            elif isinstance(a, Publish) and a.what == "symptoms":
-                self.pub["symptoms"].publish(self._fac.symptom_state(*a.value))
+            elif isinstance(a, Publish):  # diagnosis, symptoms
+                self.pub[a.what].publish(self._fac.diagnosis(a.value) if a.what == "diagnosis"
+                                         else self._fac.symptom_state(*a.value))
 
     def _done(self, fut: Any, a: Any) -> None:
         now, drv = time.monotonic(), self.core.driver
@@ -124,9 +128,6 @@ class SupervisorNode(Node):
             self._do(drv.on_get_result(a.model_id, None if r is None else
                                        int(r.current_state.id), now, err))
 
-    def _get_faults(self, req: Any, res: Any) -> Any:
-        return GetFaults.Response(faults=msgs.fault_records(self.core.memory.records.values()))
-
     def _clear_faults(self, req: Any, res: Any) -> Any:
         try:
             res.cleared = msgs.fault_records(self.core.clear(list(req.faults)))
@@ -138,8 +139,7 @@ class SupervisorNode(Node):
     def _publish_diagnostics(self) -> None:
         self.core.store.save(self.core.memory.records.values())  # last_t_s, once a second
         t = self.core.last.t if self.core.last is not None else 0.0
-        arr = msgs.diagnostic_array(self.core.entries(time.monotonic()), t)
-        self.pub["ros"].publish(arr)
+        self.pub["ros"].publish(msgs.diagnostic_array(self.core.entries(time.monotonic()), t))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -63,7 +63,8 @@ class Wing:
                                      the ids built (``None``: the wing has nothing to build)
     model_dir_spec(path)             spec of a bare model directory of this wing, or ``None``
     fst                              path of the fault-symptom table file (or ``None``)
-    reproduce / figures              ``fdi-ros`` sub-commands of the plant (module names)
+    reproduce / figures              the plant's ``fdi-ros`` sub-commands, as typed
+                                     (``"reproduce diesel"``)
     """
 
     name: str

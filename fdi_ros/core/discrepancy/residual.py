@@ -26,7 +26,6 @@ import numpy as np
 
 from fdi_ros.core.discrepancy.model import ExtendedModel
 from fdi_ros.core.measured import Measured
-from fdi_ros.core.residual_models import register_residual_model
 from fdi_ros.core.types import FeatureVector, ResidualVector
 
 
@@ -82,8 +81,10 @@ class ExtendedResidualModel:
                               norm=float(np.linalg.norm(v)))
 
 
-@register_residual_model("discrepancy_extended")
-def _make(spec: dict[str, Any], *, base_dir: Path, model_id: str) -> ExtendedResidualModel:
+def make_residual_model(spec: dict[str, Any], *, base_dir: Path,
+                        model_id: str) -> ExtendedResidualModel:
+    """The bank model of kind ``discrepancy_extended`` (registered by
+    :data:`fdi_ros.core.residual_models.KINDS`)."""
     unknown = set(spec) - {"path", "history_s"}
     if unknown:
         raise ValueError(f"discrepancy_extended: unknown keys {sorted(unknown)}")

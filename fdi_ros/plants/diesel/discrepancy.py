@@ -74,5 +74,5 @@ class DieselReferenceBaseline:
 
     @classmethod
     def from_dict(cls, d: dict) -> DieselReferenceBaseline:
-        return cls(path=d["path"], displacement_l=float(d.get("displacement_l", 2.0)),
+        return cls(path=d["path"], displacement_l=float(d.get("displacement_l", DISPLACEMENT_L)),
                    use_tables=bool(d.get("use_tables", True)))

@@ -566,7 +566,8 @@ class DieselIntakePlant:
                     dpr_dm=dpr_dm, w=w, P_c=P_c, P_t=P_t, T_co=T_co, dp_port=dp_port,
                     a_port=a_port, closure=closure)
 
-    def _step(self, t: float, inp: dict, fz: dict, *, record: bool = True) -> dict | None:
+    def _step(self, t: float, inp: dict[str, float], fz: dict[str, float], *,
+              record: bool = True) -> dict[str, float] | None:
         """One slow step of length dt from time t (linearly implicit for p2)."""
         p, x = self.p, self._x
         dt = p.dt
@@ -656,7 +657,10 @@ class DieselIntakePlant:
             if not self._initialised:
                 self._init_state(inp)
             rec = self._step(t, inp, self._faults.sizes(t))
-            alpha = 0.0 if alpha is None else alpha + 3.0 * (n_prev + rec["n"]) * p.dt
+            assert rec is not None  # recorded steps return their record
+            # the first step starts the crank angle (no speed before it)
+            alpha = 0.0 if alpha is None or n_prev is None else \
+                alpha + 3.0 * (n_prev + rec["n"]) * p.dt
             n_prev = rec["n"]
             rec["alpha"] = alpha
             recs.append(rec)
@@ -742,8 +746,7 @@ class DieselIntakePlant:
         keep = int(k[-1])
         self._last_truth = {key: float(h[key][keep]) for key in h if key not in
                             ("X_maf", "X_p2")}
-        self._last_truth.update(maf_harm=h["X_maf"][keep].copy(),
-                                p2_harm=h["X_p2"][keep].copy())
+        self._last_harm = (h["X_maf"][keep].copy(), h["X_p2"][keep].copy())
         self._hist = {key: v[keep:] for key, v in h.items()}
         return block
 
@@ -760,7 +763,7 @@ class DieselIntakePlant:
         if not hasattr(self, "_last_truth"):
             raise RuntimeError("call advance() first")
         tr = dict(self._last_truth)
-        xm, xp = tr.pop("maf_harm"), tr.pop("p2_harm")
+        xm, xp = self._last_harm
         p = self.p
         tr["eta_v_air"] = tr["m_maf"] / (tr["n"] / 120.0 * p.V_D * tr["p2"] / (p.R * tr["T2"]))
         tr["maf_amp"], tr["maf_phase"] = float(abs(xm[0])), _phase_deg(xm[0])

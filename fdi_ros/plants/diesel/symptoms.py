@@ -28,7 +28,7 @@ from collections import OrderedDict, deque
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -45,6 +45,9 @@ from fdi_ros.core.symptoms import calibrate_thresholds as _calibrate
 from fdi_ros.core.types import FeatureVector, ResidualVector
 from fdi_ros.plants.diesel.ecu import ACTUATOR_SETTLE_S, GATED_ACTUATORS, actuator_status
 from fdi_ros.plants.diesel.reference import ReferenceModelSet, wrap_phase
+
+if TYPE_CHECKING:
+    from fdi_ros.core.lolimot import Lolimot
 
 __all__ = ["RESIDUALS", "RESIDUAL_UNITS", "SYMPTOMS", "LEVEL_CODES", "PAPER_TABLE",
            "SymptomConfig", "SymptomState", "SymptomGenerator", "calibrate_thresholds",
@@ -218,10 +221,10 @@ class QuasiStationarity:
 
     def __init__(self, config: SymptomConfig | None) -> None:
         self.config = config
-        lag = config.rate_lag if config is not None else 2
-        self._hist: deque = deque(maxlen=lag + 1)
-        self._inputs: deque = deque()   # (t, n, fuel) over the last settle_s
-        self._acts: deque = deque()     # (t, {actuator: command}) over ACTUATOR_SETTLE_S
+        self._lag = config.rate_lag if config is not None else 2
+        self._hist: deque[tuple[float, float, float]] = deque(maxlen=self._lag + 1)
+        self._inputs: deque[tuple[float, float, float]] = deque()  # (t, n, fuel), settle_s
+        self._acts: deque[tuple[float, dict[str, float]]] = deque()  # ACTUATOR_SETTLE_S
 
     @property
     def active(self) -> bool:
@@ -252,7 +255,7 @@ class QuasiStationarity:
                 self._inputs.popleft()
         while self._acts and self._acts[0][0] < t - ACTUATOR_SETTLE_S:
             self._acts.popleft()
-        if len(self._hist) < self._hist.maxlen:
+        if len(self._hist) < self._lag + 1:
             return float("nan"), float("nan")
         t0, n0, p0 = self._hist[0]
         dt = t - t0
@@ -286,9 +289,9 @@ class QuasiStationarity:
     def apply(self, fv: FeatureVector, r: np.ndarray, valid: bool,
               status: str) -> tuple[np.ndarray, bool, str]:
         """Correct r_eta and gate one segment (r from :func:`parity_residuals`)."""
-        if not self.active:
-            return r, valid, status
         c = self.config
+        if c is None or not self.active:
+            return r, valid, status
         _, dp = self.rates(fv)
         if not valid:
             return r, valid, status
@@ -423,7 +426,7 @@ class FaultHypothesisResidualModel(_Batchable):
     """
 
     def __init__(self, *, models: ReferenceModelSet, config: SymptomConfig, fault: str,
-                 directions: dict[str, object], model_id: str, window: int = 40,
+                 directions: Mapping[str, Lolimot], model_id: str, window: int = 40,
                  penalty: float = DEFAULT_PENALTY, min_effect: float = 1.0) -> None:
         if config is None:
             raise ValueError("a fault-hypothesis model needs the fault-free residual scales")
@@ -433,7 +436,7 @@ class FaultHypothesisResidualModel(_Batchable):
         if unknown:
             raise ValueError(f"directions for unknown residuals {sorted(unknown)}")
         self.models, self.config, self.fault = models, config, fault
-        self.directions = directions
+        self.directions = dict(directions)
         self.model_id = model_id
         self.window = int(window)
         self.penalty = float(penalty)
@@ -533,7 +536,7 @@ class FaultHypothesisResidualModel(_Batchable):
         return d
 
 
-def load_directions(directory) -> tuple[str, dict[str, object], dict]:
+def load_directions(directory: str | Path) -> tuple[str, dict[str, Lolimot], dict[str, Any]]:
     import json
 
     from fdi_ros.core.lolimot import Lolimot
@@ -687,10 +690,10 @@ def calibrate_from_fault_free(models: ReferenceModelSet, features: Sequence[Feat
     if storage_correction and "storage_coeff" in models.info:
         coeff = float(models.info["storage_coeff"])   # identified with the static maps
     elif storage_correction and len(x) > 20:
-        x, r = np.asarray(x), np.asarray(r)
-        r = r - np.median(r)
-        den = float(x @ x)
-        coeff = float(x @ r / den) if den > 0 else 0.0
+        xa, ra = np.asarray(x), np.asarray(r)
+        ra = ra - np.median(ra)
+        den = float(xa @ xa)
+        coeff = float(xa @ ra / den) if den > 0 else 0.0
     gate = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(1.0,) * 5,
                          names=RESIDUALS,
                          rate_lag=rate_lag, storage_coeff=coeff,

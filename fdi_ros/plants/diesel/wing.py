@@ -255,6 +255,6 @@ WING = Wing(
     build_bank=build_bank,
     model_dir_spec=_reference_dir_spec,
     fst=ROOT / "config" / "diesel_fst.yaml",
-    reproduce="fdi_ros.commands.reproduce_diesel",
-    figures="fdi_ros.commands.figures_diesel",
+    reproduce="reproduce diesel",
+    figures="figures diesel-plant",
 )

@@ -24,13 +24,13 @@ def ensure_bank(cfg, *, progress: bool = False, log: Callable[[str], None] = pri
     from fdi_ros.plants.liu_ice.identify import identify
     from fdi_ros.plants.liu_ice.live import load_record
 
-    dirs = {}
+    dirs: dict[str, list[str]] = {}
     for e in cfg.bank:
         spec = cfg.resolve_spec(e.model)
         if isinstance(spec, dict) and spec.get("type") == "liu_ice_structured":
-            d = Path(spec.get("path", "."))
-            if not (d / MODEL_FILE).is_file():
-                dirs.setdefault(str(d), []).append(e.id)
+            model_dir = Path(spec.get("path", "."))
+            if not (model_dir / MODEL_FILE).is_file():
+                dirs.setdefault(str(model_dir), []).append(e.id)
     built = []
     for d, ids in dirs.items():
         src = data_dir()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -91,8 +92,9 @@ def identify(records: Sequence[Measured], settings: IdentSettings = IdentSetting
     parts = [split(r, settings.fraction)[0] for r in records]
     sigs = [signals_of(p) for p in parts]
     ds = [derived_signals(s) for s in sigs]
-    models, info = {}, {"fraction": settings.fraction,
-                        "records": [r.source for r in records], "models": {}}
+    models: dict[str, Lolimot] = {}
+    info: dict[str, Any] = {"fraction": settings.fraction,
+                            "records": [r.source for r in records], "models": {}}
     specs = tuple(specs)
     for spec in specs:
         Xs, ys = zip(*(regressors(d, spec) for d in ds))
@@ -104,9 +106,10 @@ def identify(records: Sequence[Measured], settings: IdentSettings = IdentSetting
         info["models"][spec.name] = {"n_models": res.n_models, "train_rmse": res.train_rmse,
                                      "samples": int(ok.sum()), "dynamic": spec.dynamic,
                                      "inputs": list(spec.input_names), "uses": list(spec.uses)}
-    m = len(specs)
+    n_res = len(specs)
     nb = len(settings.bands_rpm) + 1
-    proto = StructuredResiduals(models=models, centre=(0.0,) * m, threshold=((1.0,) * m,) * nb,
+    proto = StructuredResiduals(models=models, centre=(0.0,) * n_res,
+                                threshold=((1.0,) * n_res,) * nb,
                                 filter_len=settings.filter_len, gate=settings.gate,
                                 bands_rpm=settings.bands_rpm, specs=specs,
                                 transient_len=settings.transient_len)
@@ -118,13 +121,13 @@ def identify(records: Sequence[Measured], settings: IdentSettings = IdentSetting
     # excursions over every fault-free sample: identification and held-out parts
     allsig = sigs + [signals_of(h) for h in (split(r, settings.fraction)[1] for r in records)
                      if h is not None]
-    E, B = [], []
+    e_parts, b_parts = [], []
     for s in allsig:
         Fs = proto.filtered(s)[0]
         keep = np.all(np.isfinite(Fs), axis=1)
-        E.append(np.abs(Fs[keep] - c))
-        B.append(proto.band(s["n"][keep]))
-    E, B = np.vstack(E), np.concatenate(B)
+        e_parts.append(np.abs(Fs[keep] - c))
+        b_parts.append(proto.band(s["n"][keep]))
+    E, B = np.vstack(e_parts), np.concatenate(b_parts)
     thr, std, top = [], [], []
     for b in range(nb):
         Eb = E[b == B] if np.any(b == B) else E
@@ -133,16 +136,16 @@ def identify(records: Sequence[Measured], settings: IdentSettings = IdentSetting
         top.append(Eb.max(axis=0).tolist())
         thr.append(tuple(float(x) for x in np.maximum.reduce(
             [settings.k_sigma * sb, settings.margin * Eb.max(axis=0),
-             np.full(m, settings.floor)])))
+             np.full(n_res, settings.floor)])))
     thr_t = None
     if settings.transient:
-        Et, Bt = [], []
+        et_parts, bt_parts = [], []
         for s in allsig:
             Ft, settled, inside = proto.transient_filtered(s)
             keep = inside & ~settled & np.all(np.isfinite(Ft), axis=1)
-            Et.append(np.abs(Ft[keep] - c))
-            Bt.append(proto.band(s["n"][keep]))
-        Et, Bt = np.vstack(Et), np.concatenate(Bt)
+            et_parts.append(np.abs(Ft[keep] - c))
+            bt_parts.append(proto.band(s["n"][keep]))
+        Et, Bt = np.vstack(et_parts), np.concatenate(bt_parts)
         thr_t = []
         for b in range(nb):
             Eb = Et[Bt == b] if np.any(Bt == b) else Et
@@ -155,7 +158,8 @@ def identify(records: Sequence[Measured], settings: IdentSettings = IdentSetting
     return StructuredResiduals(models=models, centre=tuple(float(x) for x in c),
                                threshold=tuple(thr), bands_rpm=settings.bands_rpm,
                                filter_len=settings.filter_len, gate=settings.gate, info=info,
-                               specs=specs, threshold_transient=thr_t,
+                               specs=specs,
+                               threshold_transient=None if thr_t is None else tuple(thr_t),
                                transient_len=settings.transient_len)
 
 

@@ -8,6 +8,7 @@ plant time reaches the onset; :class:`LiuIcePreprocessor` makes one feature vect
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -68,7 +69,8 @@ class MeasuredRunner:
     def __init__(self, scenario: str | Path | dict | None = None, *,
                  seed: int | None = None) -> None:
         del seed  # measured data: nothing random
-        sc = {"csv": scenario} if isinstance(scenario, str | Path) else dict(scenario or {})
+        sc: dict[str, Any] = ({"csv": scenario} if isinstance(scenario, str | Path)
+                              else dict(scenario or {}))
         if "csv" not in sc:
             raise ValueError("the liu_ice plant needs a measured CSV (scenario: the CSV path)")
         path = Path(sc["csv"])

@@ -414,7 +414,8 @@ class ResidualStream:
 
     def __init__(self, rs: StructuredResiduals) -> None:
         self.rs = rs
-        self._hist: deque = deque(maxlen=rs.history)
+        self._hist: deque[list[float]] = deque(maxlen=rs.history)
+        self._history = rs.history
         self._scorer = Scorer(rs)
         self._last_key: tuple[int, float] | None = None
         self._last: tuple[np.ndarray, bool, str] = (np.full(len(rs.specs), np.nan), False, "")
@@ -447,7 +448,7 @@ class ResidualStream:
             return self._last
         self._last_t = fv.t_end
         self._hist.append(row)
-        if len(self._hist) < self._hist.maxlen:
+        if len(self._hist) < self._history:
             self._scorer.reset()
             self._last = (np.full(m, np.nan), False, "not valid here: filling the history")
             return self._last

@@ -329,7 +329,8 @@ def run_scenario(gm: GlobalModel, scenario: Scenario, *, t0_s: float,
 
 
 def fault_free_batch(gm: GlobalModel, *, n_runs: int, seed: int, condition=tfp.PAPER_CONDITION,
-                     deterioration_range=(0.0, 0.3), manufacturing_sigma: float = 0.15e-2,
+                     deterioration_range: tuple[float, float] = (0.0, 0.3),
+                     manufacturing_sigma: float = 0.15e-2,
                      duration_s: float = 20.0, plant: tfp.Turbofan | None = None,
                      bank: Sequence[BankModel] = PAPER_BANK, xnh_weight: float = 0.0) -> dict:
     """Fault-free runs with random manufacturing variation and deterioration (seeded).

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fdi_ros.core.plant_api import FaultQueue
+from fdi_ros.core.plant_api import SampledRunner
 from fdi_ros.core.supervisor import fault_type
 from fdi_ros.core.types import FaultEvent, FeatureVector, SampleBlock, ramp_fraction
 from fdi_ros.plants import ROOT
@@ -36,10 +36,12 @@ def _event_units(ev: FaultEvent) -> tuple[str, float]:
     return kind, tfp.fault_size(kind, float(ev.size))
 
 
-class TurbofanRunner:
+class TurbofanRunner(SampledRunner):
     """Streaming turbofan running a scenario file (see ``config/turbofan_*.yaml``)."""
 
     plant = "turbofan"
+    channels = CHANNELS
+    units = UNITS
 
     def __init__(self, scenario: str | Path | dict | None = None, *, seed: int | None = None,
                  block_samples: int = 5, config: str | Path | None = None) -> None:
@@ -61,20 +63,18 @@ class TurbofanRunner:
             raise ValueError("block_samples must be >= 1")
         self.scenario = sc
         self.sim = tfp.Turbofan()
+        super().__init__(ts=self.sim.k.Ts)
         self._c = np.asarray(sc.condition, dtype=float)
         self._wf = tfp.paper_input(self.sim.scheduled_fuel(self._c), duration_s=sc.duration_s)
         self._base = tfp.Health(manufacturing=sc.manufacturing,
                                 deterioration=sc.deterioration).quality()
         self._rng = np.random.default_rng(sc.seed if seed is None else seed)
         self._faults: list[tuple[float, str, float, float]] = []  # (t, type, units, ramp_s)
-        self._truth = FaultQueue()
         for t, faults in sc.events:
             for kind, size in faults.items():
                 self.inject(FaultEvent(t=float(t), fault=f"{kind}_{size}" if isinstance(size, str)
                                        else kind, size=float(tfp.fault_size(kind, size)),
                                        size_unit="small"))
-        self._k = 0
-        self._index = 0
         self._x = self.sim.trim(self._wf[0], self._c, self._quality(0.0))
         self._per_block = int(block_samples)
 
@@ -108,10 +108,6 @@ class TurbofanRunner:
 
     # -- streaming --------------------------------------------------------------------------------
     @property
-    def t(self) -> float:
-        return max(self._k - 1, 0) * self.sim.k.Ts
-
-    @property
     def done(self) -> bool:
         return self._k >= self._wf.size
 
@@ -119,8 +115,8 @@ class TurbofanRunner:
         if self.done:
             raise ValueError("the turbofan scenario is over")
         n = min(self._per_block, self._wf.size - self._k)
-        ts = self.sim.k.Ts
-        t = (self._k + np.arange(n)) * ts
+        ts = self.ts
+        t = self._times(n)
         vals = np.empty((3, n))
         for j in range(n):
             k = self._k + j
@@ -129,14 +125,7 @@ class TurbofanRunner:
             vals[1, j] = self._x[1] + self._rng.normal(0.0, self.sim.k.noise_xnh)
             vals[2, j] = u
             self._x, _ = self.sim.step(self._x, u, self._c, self._quality(k * ts))
-        self._k += n
-        block = SampleBlock(plant="turbofan", index=self._index, t=t, alpha=np.empty(0),
-                            channels=CHANNELS, units=UNITS, values=vals)
-        self._index += 1
-        return block
-
-    def pop_truth(self) -> list[FaultEvent]:
-        return self._truth.due(self.t)
+        return self._emit(t, vals)
 
 
 class TurbofanPreprocessor:

@@ -38,12 +38,14 @@ from __future__ import annotations
 import itertools
 import json
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from fdi_ros.core.tsfuzzy import StackedTS, fit_ts
+from fdi_ros.core.tsfuzzy import StackedTS, TSFitResult, fit_ts
 from fdi_ros.plants.turbofan import plant as tfp
 
 DIMS = ("ALT", "XM", "DTAMB", "PC", "deterioration", "fan", "hub")
@@ -96,7 +98,7 @@ class GridSpec:
     def widths(self) -> tuple[float, float, float]:
         return (self.width_condition, self.width_deterioration, self.width_fault)
 
-    def sigmas(self, widths: tuple[float, float, float] | None = None) -> np.ndarray:
+    def sigmas(self, widths: tuple[float, ...] | None = None) -> np.ndarray:
         """(N, 7) membership widths per node: ``width`` * local grid spacing (shortest distance
         to the neighbouring grid values of that dimension; 1 for single-value dimensions).
         ``widths`` (condition, deterioration, fault) overrides the grid's."""
@@ -115,14 +117,15 @@ class GridSpec:
         return np.array(list(itertools.product(*per_axis)), dtype=float)
 
     @classmethod
-    def from_dict(cls, d: dict | None) -> GridSpec:
-        d = dict(d or {})
-        unknown = set(d) - set(cls.__dataclass_fields__)
+    def from_dict(cls, d: Mapping[str, Any] | None) -> GridSpec:
+        kw: dict[str, Any] = dict(d or {})
+        unknown = set(kw) - set(cls.__dataclass_fields__)
         if unknown:
             raise ValueError(f"unknown grid key(s): {sorted(unknown)}")
-        if "region" in d:
-            d["region"] = {k: tuple(v) for k, v in d["region"].items()}
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()})
+        if "region" in kw:
+            kw["region"] = {k: tuple(v) for k, v in kw["region"].items()}
+        args: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in kw.items()}
+        return cls(**args)
 
 
 def node_quality(node: np.ndarray) -> np.ndarray:
@@ -164,7 +167,8 @@ class GlobalModel:
     xnl_range: tuple[float, float]  # premise range seen in training [rpm]
     report: TrainingReport | None = None
     signature: str = ""  # plant_signature() of the plant that generated the training data
-    widths: tuple = ()  # fitted (condition, deterioration, fault) widths; () = the grid's
+    widths: tuple[float, ...] = ()  # fitted (condition, deterioration, fault) widths; () = grid's
+    _sigmas: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.widths and (len(self.widths) != 3 or min(self.widths) <= 0):
@@ -220,7 +224,7 @@ class GlobalModel:
     def save(self, path: str | Path) -> Path:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        meta = {"grid": {k: (list(v) if isinstance(v, tuple) else v)
+        meta: dict[str, Any] = {"grid": {k: (list(v) if isinstance(v, tuple) else v)
                          for k, v in self.grid.__dict__.items()},
                 "xnl_range": list(self.xnl_range), "premise": self.f1.premise,
                 "signature": self.signature, "widths": list(self.widths),
@@ -337,7 +341,8 @@ def train_global(grid: GridSpec, *, n_rules: int = 3, seed: int = 0, duration_s:
     x = sim["x"]
     inputs = np.concatenate([x[:, :-1], wf[:, :-1, None]], axis=-1)  # (N, steps, 3)
     target = np.diff(x, axis=1) / ts
-    fits1, fits2 = [], []
+    fits1: list[TSFitResult] = []
+    fits2: list[TSFitResult] = []
     for j in tqdm(range(n), desc="training TS node models", unit="node", disable=not progress):
         for out, fits in ((0, fits1), (1, fits2)):
             fits.append(fit_ts(inputs[j], target[j, :, out], n_rules=n_rules, premise=0,

@@ -67,6 +67,6 @@ WING = Wing(
     faults=tuple(FAULT_DIRECTIONS),
     validate_fault=validate_fault,
     build_bank=build_bank,
-    reproduce="fdi_ros.commands.reproduce_turbofan",
-    figures="fdi_ros.plants.turbofan.figures",
+    reproduce="reproduce turbofan",
+    figures="reproduce turbofan --figures DIR",
 )

@@ -42,15 +42,12 @@ def hosting_overrides(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    import sys
-
     from fdi_ros.launcher import WATCHER, Graph, RespawnPolicy, run_until_interrupted
 
     over: dict[str, dict] = {"fdi_plant": {}, "fdi_replayer": {"rate": args.rate}}
     if args.start_delay is not None:
         if not args.start_delay >= 0:
-            print("fdi-ros launch: --start-delay must be >= 0", file=sys.stderr)
-            return 2
+            raise ValueError("--start-delay must be >= 0")
         for section in over.values():
             section["start_delay_s"] = args.start_delay
     if args.scenario:
@@ -58,14 +55,10 @@ def run(args: argparse.Namespace) -> int:
     if args.realtime_factor is not None:
         over["fdi_plant"]["realtime_factor"] = args.realtime_factor
     if args.record and Path(args.record).exists():
-        print(f"fdi-ros launch: {args.record} already exists: the recorder cannot record "
-              "there; choose another --record", file=sys.stderr)
-        return 2
-    try:
-        graph = Graph(args.config, overrides=over, record=args.record, replay=args.replay,
-                      hosting=hosting_overrides(args), watcher=WATCHER)
-    except ValueError as exc:
-        print(f"fdi-ros launch: {exc}", file=sys.stderr)
-        return 2
+        raise ValueError(f"{args.record} already exists: the recorder cannot record there; "
+                         "choose another --record")
+    # A malformed configuration raises ValueError: fdi_ros.cli answers it in one line.
+    graph = Graph(args.config, overrides=over, record=args.record, replay=args.replay,
+                  hosting=hosting_overrides(args), watcher=WATCHER)
     return run_until_interrupted(graph, respawn=RespawnPolicy(limit=args.respawn_limit),
                                  json_out=args.json)

@@ -26,13 +26,27 @@ class Seen:
     features: list[tuple[float, Any]] = field(default_factory=list)
     blocks: list[tuple[float, Any]] = field(default_factory=list)
     end_of_data: list[tuple[float, Any]] = field(default_factory=list)
+    end_of_diagnosis: list[tuple[float, tuple[float, int]]] = field(default_factory=list)
+
+
+def run_ended(seen: Seen) -> bool:
+    """The one rule for "this run's data is fully diagnosed": the supervisor has said the end
+    of the diagnosis (it says so only once the source's data ended and the segment with the
+    last feature index is diagnosed, see :mod:`fdi_ros.nodes.startup`) and the diagnosis it
+    names has reached this watcher too (-1: the data held no segment). Plant-time facts
+    only: no wall-clock lull decides it."""
+    if not seen.end_of_diagnosis:
+        return False
+    last = seen.end_of_diagnosis[-1][1][1]
+    return last < 0 or any(d.index >= last for _, d in reversed(seen.diagnoses))
 
 
 class GraphWatcher:
     """An rclpy context + node of its own that records the graph's topics.
 
     ``watch_blocks`` / ``watch_features`` also record the high-rate streams (only the header
-    times are kept, for latency measurements); ``watch_end`` the replayer's end-of-data event.
+    times are kept, for latency measurements); ``watch_end`` the source's end-of-data event
+    and the supervisor's end of the diagnosis.
     """
 
     def __init__(self, name: str = "fdi_watcher", *, watch_features: bool = False,
@@ -72,8 +86,15 @@ class GraphWatcher:
         if watch_end:
             from std_msgs.msg import Header
 
-            sub(Header, "/fdi/end_of_data",
+            from fdi_ros.nodes.startup import END_OF_DATA_TOPIC, END_OF_DIAGNOSIS_TOPIC, read_end
+
+            def on_end(m: Any) -> None:
+                if (e := read_end(m, "end_of_diagnosis")) is not None:
+                    self.seen.end_of_diagnosis.append((now(), e))
+
+            sub(Header, END_OF_DATA_TOPIC,
                 lambda m: self.seen.end_of_data.append((now(), m)), LATCHED_QOS)
+            sub(Header, END_OF_DIAGNOSIS_TOPIC, on_end, LATCHED_QOS)
         self._diag_pub = self.node.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._inject_cli: Any = None
         self._fac = msgs.MessageFactory("rclpy")

@@ -296,7 +296,8 @@ def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
     Every process starts at once; the source (plant or replayer) sends its first block after
     the start-up handshake (see :class:`Graph`). When its data ends (the end-of-data event on
     ``/fdi/end_of_data``, of the replayer or of the plant at its scenario's end) the launcher
-    waits for the last segment's diagnosis, stops the graph and exits 0. A recorder that dies
+    waits for the supervisor's end of the diagnosis (the last segment diagnosed, see
+    :func:`fdi_ros.graphwatch.run_ended`), stops the graph and exits 0. A recorder that dies
     is reported at once on ``/diagnostics`` (ERROR, "fdi_launch: recorder") before the graph
     stops; so is any other node that dies (WARN while it is respawned, ERROR when that ends
     the run). ``json_out`` gets the diagnosis events of the run (the format of
@@ -321,7 +322,7 @@ def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
     status = 0
     try:
         if source in {n.name for n in graph.nodes}:
-            from fdi_ros.graphwatch import GraphWatcher
+            from fdi_ros.graphwatch import GraphWatcher, run_ended
 
             watcher = GraphWatcher(WATCHER, watch_end=True)
         graph.start()
@@ -376,8 +377,13 @@ def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
                 if end_seen_at is None and watcher.seen.end_of_data:
                     end_seen_at = now
                     log("end of data: waiting for the last segment's diagnosis")
-                if end_seen_at is not None and _diagnosis_settled(watcher, end_seen_at, now):
+                if run_ended(watcher.seen):
+                    log("end of the diagnosis: every segment of the data diagnosed")
                     break
+                if end_seen_at is not None and now - end_seen_at > END_TIMEOUT_S:
+                    log(f"the diagnosis did not reach the end of the data {END_TIMEOUT_S:g} s "
+                        "after it (is the supervisor or the preprocessor running?); stopping")
+                    status = 1
             if watcher is None and not any(graph.alive().values()):
                 break
     finally:
@@ -396,14 +402,9 @@ def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
     return status
 
 
-# after the end of data: the last diagnosis is the one no new segment follows for this long
-SETTLE_S = 2.0
+# health only: wall seconds after the source's end of data without the supervisor's end of the
+# diagnosis (which normally follows within the pipeline's lag) before the run is given up
 END_TIMEOUT_S = 60.0
-
-
-def _diagnosis_settled(watcher: Any, end_at: float, now: float) -> bool:
-    last = watcher.seen.diagnoses[-1][0] if watcher.seen.diagnoses else end_at
-    return now - max(last, end_at) >= SETTLE_S or now - end_at >= END_TIMEOUT_S
 
 
 def _write_events(watcher: Any, path: str | Path) -> None:

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from fdi_ros.graphwatch import GraphWatcher
+from fdi_ros.graphwatch import GraphWatcher, run_ended
 from fdi_ros.launcher import Graph
 
 
@@ -163,7 +163,7 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
                         f"{sw['on_line']}")
                 online = d.models_online
             src = graph.node(source)
-            if w.seen.end_of_data and _quiet(w):
+            if run_ended(w.seen):
                 break
             if stop_after_isolation_s is not None and not math.isnan(run.isolation_t) \
                     and run.final_t >= run.isolation_t + stop_after_isolation_s:
@@ -185,11 +185,6 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
         graph.stop()
         w.close()
     return run, w
-
-
-def _quiet(w: GraphWatcher, idle_s: float = 1.0) -> bool:
-    """No diagnosis for ``idle_s`` wall seconds: the pipeline has drained."""
-    return bool(w.seen.diagnoses) and time.monotonic() - w.seen.diagnoses[-1][0] > idle_s
 
 
 def _scan_symptoms(w: GraphWatcher, run: LiveRun, log: Callable[[str], None]) -> None:

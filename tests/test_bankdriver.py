@@ -196,3 +196,22 @@ def test_random_event_sequences_keep_the_invariants():
                 continue
             assert v.observed == true[m] == v.desired, (seed, m, v, true)
             assert drv.live(m) == (m in desired)
+
+
+def test_a_node_missing_from_one_graph_listing_is_not_gone():
+    """A busy machine's discovery can drop a live node from a listing: gone only after
+    ``absent_s`` of absence, and a node that comes back before that was never failed."""
+    drv = BankDriver(NODES, DriverPolicy(absent_s=1.0))
+    drv.set_desired(["nominal", "a"])
+    now = bring_up(drv)
+    rng = random.Random()
+    for _ in range(50):  # random blips shorter than absent_s
+        t = now + rng.uniform(0.0, 0.9)
+        assert drv.on_presence("a", False, now) == [] and drv.on_presence("a", False, t) == []
+        assert drv.on_presence("a", True, t + 0.01) == [] and drv.live("a")
+        now = t + 0.05
+    assert drv.on_presence("a", False, now) == []
+    (note,) = drv.on_presence("a", False, now + 1.0)
+    assert "vanished" in note.text and not drv.live("a")
+    with pytest.raises(ValueError):
+        DriverPolicy(absent_s=-1.0)

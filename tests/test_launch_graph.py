@@ -51,9 +51,7 @@ def _own_temp_dirs() -> set[str]:
     return {p.name for p in Path(tempfile.gettempdir()).glob("fdi_launch_*")}
 
 
-@pytest.mark.parametrize("rate", [1.0, pytest.param(4.0, marks=pytest.mark.xfail(
-    strict=False, reason="at 4x on 2 cores the graph cannot keep up: the supervisor reports "
-    "overload and skips segments (no other isolation), so the isolation is not reached"))])
+@pytest.mark.parametrize("rate", [1.0, 4.0])
 def test_replay_ends_by_itself_with_the_offline_isolation(demo_bag, tmp_path, rate):
     bag, offline = demo_bag
     before = _own_temp_dirs()
@@ -72,6 +70,10 @@ def test_replay_ends_by_itself_with_the_offline_isolation(demo_bag, tmp_path, ra
     assert got is not None, live
     segment = 0.015 * 2  # one segment either side
     assert got[0] == want[0] and abs(got[1] - want[1]) <= segment, (got, want)
+    # every event to the segment, at any rate: a replay the graph cannot follow is held back
+    last = offline["segments"] - 1
+    assert _events_from(live, 0, last) == _events_from(offline["events"], 0, last), \
+        r.stderr[-3000:]
     assert _own_temp_dirs() <= before  # the parameter files went with the launcher
 
 
@@ -196,7 +198,7 @@ def test_sigkilled_recorder_stops_the_launcher_and_its_bag_recovers(demo_bag, tm
     last = live[-1].index
     lev = diagnosis_events(live)
     assert lev[0]["index"] == offline[0]["index"] == 0, (lev[:2], offline[:2])
-    assert _events_from(lev, 0, last) == _events_from(offline, 0, last)
+    assert _events_from(lev, 0, last) == _events_from(offline, 0, last), err[-4000:]
 
 
 def test_scenario_run_ends_by_itself_with_the_offline_isolation(demo_bag, tmp_path):
@@ -211,13 +213,16 @@ def test_scenario_run_ends_by_itself_with_the_offline_isolation(demo_bag, tmp_pa
     assert r.returncode == 0, r.stderr[-3000:]
     got = _first_isolation(json.loads(out.read_text())["events"])
     want = _first_isolation(offline["events"])
-    assert got is not None and got[0] == want[0] and abs(got[1] - want[1]) <= 0.03, (got, want)
+    assert got is not None and got[0] == want[0] and abs(got[1] - want[1]) <= 0.03, \
+        (got, want, r.stderr[-3000:])
 
 
 def _events_from(events: list[dict], start: int, last: int) -> list[tuple]:
     """The state holding at segment ``start`` and every change after it, up to ``last``."""
-    held = [e for e in events if e["index"] <= start][-1]
+    held = [e for e in events if e["index"] <= start and "state" in e][-1]
     out = [(start, held["state"], held["fault_model"])]
-    out += [(e["index"], e["state"], e["fault_model"], e["min_residual_model"],
+    out += [(e["index"], "bank_switch", tuple(e["bank_switch"]["models_online"]))
+            if "bank_switch" in e else
+            (e["index"], e["state"], e["fault_model"], e["min_residual_model"],
              tuple(e["candidate_faults"])) for e in events if start < e["index"] <= last]
     return out

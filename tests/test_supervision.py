@@ -166,20 +166,31 @@ def _core(tmp_path, store=None):
     return core
 
 
-def _feed(core, k, y, wall, skip=()):
+def _fv(k, y):
     import numpy as np
 
-    from fdi_ros.core.types import FeatureVector, ResidualVector
+    from fdi_ros.core.types import FeatureVector
 
     t = 0.015 * (k + 1)
-    out = core.features(FeatureVector("toy", k, t - 0.015, t, 0.0, True, "", ("y",), ("1",),
-                                      np.array([y])), wall)
+    return FeatureVector("toy", k, t - 0.015, t, 0.0, True, "", ("y",), ("1",), np.array([y]))
+
+
+def _residuals(core, k, y, wall, skip=()):
+    import numpy as np
+
+    from fdi_ros.core.types import ResidualVector
+
+    t, out = 0.015 * (k + 1), []
     for mid, off in (("nominal", 0.0), ("a", 1.0), ("b", -1.0)):
         if mid not in skip:
             r = y - off
             out += core.residual(ResidualVector(mid, k, t, True, "", ("r",), ("1",),
                                                 np.array([r]), abs(r)), wall)
     return out
+
+
+def _feed(core, k, y, wall, skip=()):
+    return core.features(_fv(k, y), wall) + _residuals(core, k, y, wall, skip)
 
 
 def test_core_external_deactivate_never_isolates_and_memory_reloads(tmp_path):
@@ -315,9 +326,63 @@ def test_models_on_line_before_the_data_are_not_stale_at_its_first_segment(tmp_p
         _feed(core, k, 0.0, wall)
     assert not [n.text for n in notes if "stale" in n.text], notes
     assert core.last.state == "no_fault" and core.aligner.skipped == 0
-    # a model silent for model_wall_s while the features go on is stale (and away)
+    # a model silent for model_wall_s while the features go on is reported stale (health,
+    # wall time) but still waited for: the diagnosis is decided in plant time only
     for k in range(10, 100):
         wall = 5.0 + 0.015 * k
         core.tick(wall, ready, None)
         _feed(core, k, 0.0, wall, skip=("b",))
-    assert "residuals b" in core._stale and "b" not in core._expected()
+    assert "residuals b" in core._stale and "b" in core._expected()
+    assert core.last.index == 9 and not core.away  # 1.35 s of plant time < lag_s
+    # lag_s of plant time without it: that step skipped (not valid), b away, the rest go on
+    notes = []
+    for k in range(100, 200):
+        wall = 5.0 + 0.015 * k
+        notes += [a for a in core.tick(wall, ready, None) if hasattr(a, "text")]
+        notes += [a for a in _feed(core, k, 0.0, wall, skip=("b",)) if hasattr(a, "text")]
+    assert core.away == {"b"} and "b" not in core._expected()
+    assert core.aligner.skipped == 1 and core.last.index == 199
+    assert core.last.state == "no_fault"
+    assert any("model b: no residuals for segment 10" in n.text for n in notes), notes
+    # b answers in time again: waited for again
+    _feed(core, 200, 0.0, 5.0 + 0.015 * 200)
+    assert not core.away and "b" in core._expected()
+
+
+def test_end_of_the_data_said_once_the_last_segment_is_diagnosed(tmp_path):
+    """The preprocessor's end of the features names its last index; the supervisor says the
+    end of the diagnosis when that step is taken, not before (whatever the wall time), and
+    a residual that never comes is not waited for forever (health fallback)."""
+    from fdi_ros.core.supervision import Publish
+
+    def ends(actions):
+        return [a.value for a in actions if isinstance(a, Publish) and a.what == "end"]
+
+    core = _core(tmp_path)
+    ready = dict.fromkeys(core.driver.nodes, False)
+    for k in range(5):
+        _feed(core, k, 0.0, 0.0)
+    out = core.features(_fv(5, 0.0), 0.0)  # the last features: its residuals not yet here
+    out += core.end_of_features(0.09, 5, 0.0)
+    out += core.tick(1.0, ready, None)
+    assert ends(out) == [] and core.last.index == 4
+    out = _residuals(core, 5, 0.0, 1.5)
+    assert ends(out) == [(0.09, 5, "")] and core.last.index == 5
+    assert ends(core.tick(9.0, ready, None)) == []  # said once
+    # a model that never answers for the last segment: after stale_wall_s of silence the step
+    # is taken without it (skipped, not valid) and the end said with the reason
+    core = _core(tmp_path)
+    for k in range(3):
+        _feed(core, k, 0.0, 0.0)
+    out = core.features(_fv(3, 0.0), 0.0) + _residuals(core, 3, 0.0, 0.0, skip=("a",))
+    out += core.end_of_features(0.06, 3, 0.0) + core.tick(1.0, ready, None)
+    assert ends(out) == []
+    out = core.tick(10.0, ready, None)
+    assert ends(out) == [(0.06, 3, "")] and core.last.index == 3
+    assert core.last.state == "not_valid" and core.aligner.skipped == 1
+    # features that never came: named
+    core = _core(tmp_path)
+    for k in range(3):
+        _feed(core, k, 0.0, 0.0)
+    out = core.end_of_features(0.09, 5, 0.0) + core.tick(10.0, ready, None)
+    assert len(ends(out)) == 1 and "never came" in ends(out)[0][2]

@@ -59,7 +59,7 @@ def _signal(graph: Any, name: str, sig: int) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fdi_ros.graphwatch import GraphWatcher
+    from fdi_ros.graphwatch import GraphWatcher, run_ended
     from fdi_ros.launcher import RESPAWN_MODULES, Graph
 
     rng = random.Random(args.seed)
@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
             w.executor.spin_once(timeout_sec=0.05)
             d = w.last_diagnosis()
             now = time.monotonic()
-            if d is not None and d.t >= end_t or w.seen.end_of_data:
+            if d is not None and d.t >= end_t or run_ended(w.seen):
                 break
             for n in graph.nodes:  # respawn, as fdi-ros launch does
                 if n.module in RESPAWN_MODULES and n.proc is not None and \

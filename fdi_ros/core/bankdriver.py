@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 # lifecycle_msgs/State primary state ids and lifecycle_msgs/Transition ids
 UNKNOWN, UNCONFIGURED, INACTIVE, ACTIVE, FINALIZED = 0, 1, 2, 3, 4
@@ -45,11 +46,15 @@ class DriverPolicy:
     first_contact_retry_s: float = 1.0
     policy: str = "reconcile"
     reconcile_after_s: float = 2.0
+    # a node missing from the ROS graph listing this long is gone (a busy machine's discovery
+    # can drop a live node from one listing)
+    absent_s: float = 1.0
 
     def __post_init__(self) -> None:
         if self.policy not in POLICIES:
             raise ValueError(f"policy must be one of {POLICIES}, not {self.policy!r}")
-        for name in ("node_timeout_s", "first_contact_retry_s", "reconcile_after_s"):
+        for name in ("node_timeout_s", "first_contact_retry_s", "reconcile_after_s",
+                     "absent_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be a finite time >= 0 s, not {v}")
@@ -90,6 +95,8 @@ class NodeView:
     node: str
     observed: int = UNKNOWN
     desired: int = INACTIVE
+    absent_since: float = math.nan  # wall time it was first missing from the graph listing
+    listed: bool = False  # seen in the graph listing at least once
     pending: str = ""  # "" | "change" | "get": a request in flight
     sent_at: float = 0.0
     first_asked: float = math.nan
@@ -196,6 +203,16 @@ class BankDriver:
         out.append(self._send(v, now, "get", GetState(v.model_id, v.node)))
         return out
 
+    def on_answer(self, action: ChangeState | GetState, answer: Any, now: float,
+                  error: str = "") -> list[object]:
+        """The answer to ``action`` (a ChangeState or GetState response; None: the call raised
+        ``error``)."""
+        if isinstance(action, ChangeState):
+            return self.on_change_result(action.model_id, None if answer is None else
+                                         bool(answer.success), now, action.goal, error)
+        return self.on_get_result(action.model_id, None if answer is None else
+                                  int(answer.current_state.id), now, error)
+
     def on_get_result(self, model_id: str, state: int | None, now: float,
                       error: str = "") -> list[object]:
         """A get_state answer: the observed state (``state`` None: the call raised)."""
@@ -241,7 +258,14 @@ class BankDriver:
     def on_presence(self, model_id: str, present: bool, now: float) -> list[object]:
         """The node left the ROS graph (process died) or came (back)."""
         v = self.nodes[model_id]
-        if not present and not v.failed and v.observed != UNKNOWN:
+        if present:
+            v.absent_since, v.listed = math.nan, True
+        elif math.isnan(v.absent_since):
+            v.absent_since = now
+        # before its first listing a node answering its services is not "gone": the listing
+        # (discovery info) can come seconds after the services on a busy machine
+        if not present and v.listed and not v.failed and v.observed != UNKNOWN \
+                and now - v.absent_since >= self.policy.absent_s:
             return self._fail(v, "node vanished from the graph (process died?)")
         if present and v.failed.startswith("node vanished"):
             v.failed, v.observed, v.pending = "", UNKNOWN, ""

@@ -119,21 +119,24 @@ class StepAligner:
         self._pending.setdefault(index, {})[model_id] = value
         return True
 
-    def ready(self, expected: Iterable[str]) -> list[Step]:
-        """Steps that can be taken now, in index order."""
+    def ready(self, expected: Iterable[str], through: int | None = None) -> list[Step]:
+        """Steps that can be taken now, in index order; ``through``: take every step up to
+        this index now, complete or not (the end of the data: no later features will come
+        to push the incomplete ones out by ``lag_s``)."""
         exp = set(expected)
         out = []
+        last = -1 if through is None else through
         while self.next_index is not None:
             k = self.next_index
             if k not in self._feature_t:
-                if any(i > k for i in self._feature_t):
+                if any(i > k for i in self._feature_t) or k <= last:
                     self.next_index = k + 1  # a dropped feature index: no step for it
                     continue
                 break
             got = self._pending.get(k, {})
             complete = exp <= set(got)
             t = self._feature_t[k]
-            if not complete and self.newest_t - t < self.lag_s:
+            if not complete and self.newest_t - t < self.lag_s and k > last:
                 break
             if not complete:
                 self.skipped += 1
@@ -294,7 +297,8 @@ def model_entries(drv: BankDriver, stale: Mapping[str, str]) -> list[Entry]:
 @dataclass(frozen=True)
 class Publish:
     """Action: publish ``what`` ("symptoms": (index, t, SymptomState); "diagnosis": Diagnosis;
-    "confirmed": FaultRecord, for a snapshot)."""
+    "confirmed": FaultRecord, for a snapshot; "end": (t, last index, why), the end of the
+    diagnosis, see :meth:`SupervisorCore.end_of_features`)."""
 
     what: str
     value: Any
@@ -328,6 +332,14 @@ class SupervisorCore:
         self._features: dict[int, dict[str, float]] = {}
         self._symptoms: dict[int, Any] = {}
         self._stale: dict[str, str] = {}
+        self.away: set[str] = set()  # models the steps do not wait for (see _steps)
+        # end of the data: (plant time, last feature index) from the preprocessor, the wall
+        # time it came, and whether the end of the diagnosis was said (see end_of_features)
+        self.end: tuple[float, int] | None = None
+        self._end_wall = math.nan
+        self._end_said = False
+        self._flush_through: int | None = None
+        self._end_why = ""
         # what the start-up handshake still waits for (see waiting_for; set by the node)
         self.waiting: list[str] = ["the first check"]
         # the last snapshot_s of plant time as core records (features, residuals, diagnoses),
@@ -394,12 +406,20 @@ class SupervisorCore:
         if rv.model_id not in self.driver.nodes:
             return []
         self.models.seen(f"residuals {rv.model_id}", rv.t, wall)
-        if not self.driver.live(rv.model_id) or rv.model_id not in self.diag.models_online:
-            return []  # a model away from its desired state: its residuals are not valid
+        out: list[object] = []
+        if rv.model_id in self.away and rv.t >= self.aligner.last_t - self.aligner.lag_s / 2:
+            # caught up (within half the lag of the diagnosis): waited for again (hysteresis:
+            # away at lag_s behind, back at lag_s / 2)
+            self.away.discard(rv.model_id)
+            out.append(Note("info", rv.model_id, f"model {rv.model_id} has caught up "
+                            f"(segment {rv.index}); waited for again"))
+        # kept whatever the model's state now: whether it counts is decided when its step is
+        # taken (a model confirmed active again must find the residuals it sent meanwhile)
         if not self.aligner.add_residual(rv.model_id, rv.index, rv):
-            return []
+            return out
         self._keep(rv.t, "residuals", rv)
-        out = []
+        if not self.driver.live(rv.model_id) or rv.model_id not in self.diag.models_online:
+            return out + self._steps()
         if rv.model_id == self.diag.reference_id and rv.index not in self._symptoms:
             s = self.diag.symptoms_of(rv)  # at once: the symptom need not wait for the bank
             self._symptoms[rv.index] = s
@@ -408,22 +428,34 @@ class SupervisorCore:
 
     def _expected(self) -> list[str]:
         return [m for m in self.diag.models_online if self.driver.live(m)
-                and f"residuals {m}" not in self._stale]
+                and m not in self.away]
 
     def _steps(self) -> list[object]:
         from dataclasses import replace
 
         out: list[object] = []
-        for st in self.aligner.ready(self._expected()):
+        expected = self._expected()
+        for st in self.aligner.ready(expected, through=self._flush_through):
             sym = self._symptoms.pop(st.index, None)
-            # A silent model (frozen, overloaded, or gone without leaving the graph yet) is
-            # reported STALE and left out, as a dead one is: steps do not wait for it (the
-            # others would pile up). Dropping its residuals or blocking every isolation while
-            # it is away was tried and rejected: a model starved for model_wall_s on a busy
-            # machine then restarts the hold time T0 and delays a true isolation (a different
-            # diagnosis from the load alone); no-elimination already keeps the rest from
-            # isolating a fault the away model would explain, and names it "(model away)".
+            # A step still incomplete lag_s of plant time after its features is skipped (not
+            # valid), and the models it lacked are *away*: later steps no longer wait for
+            # them (the others would pile up) until one of their residuals comes in time
+            # again. Decided in plant time only, so a busy machine that stalls a model for
+            # less than lag_s changes nothing (the diagnosis equals offline); a silent model
+            # is also reported STALE on /diagnostics, which is health only (wall time).
+            # No-elimination keeps the rest from isolating a fault an away model would
+            # explain, and names it "(model away)".
+            # a model away from its desired state (off line, external change): its residuals
+            # are not valid
+            st.residuals = {m: r for m, r in st.residuals.items() if m in expected}
             skip = not st.complete
+            if skip:
+                lacking = sorted(set(expected) - set(st.residuals) - self.away)
+                self.away.update(lacking)
+                out += [Note("warn", m, f"model {m}: no residuals for segment {st.index} "
+                             f"after {self.aligner.lag_s:g} s of plant time; segment skipped, "
+                             "the next ones diagnosed without it until it answers in time")
+                        for m in lacking]
             step = self.diag.update(st.index, st.t, {} if skip else st.residuals,
                                     symptoms=None if skip else sym)
             d = step.diagnosis
@@ -446,7 +478,45 @@ class SupervisorCore:
             out += self._remember(d, st, step.symptoms)
             for old in [i for i in self._features if i <= st.index]:
                 del self._features[old]
-        return out
+        return out + self._drained()
+
+    # -- end of the data ----------------------------------------------------------------------
+    def end_of_features(self, t: float, last_index: int, wall: float) -> list[object]:
+        """The preprocessor's end of the features: ``last_index`` is the index of its last
+        feature vector (-1: none), ``t`` the plant time the data ended. Once the step of that
+        index is taken the supervisor says ``Publish("end", (t, last_index, why))``: the
+        whole run is diagnosed (see :meth:`tick` for residuals that never come)."""
+        if self.end is None:
+            self.end, self._end_wall = (float(t), int(last_index)), wall
+        return self._steps()
+
+    def _drained(self, force: bool = False) -> list[object]:
+        if self.end is None or self._end_said:
+            return []
+        t, last = self.end
+        nxt = self.aligner.next_index
+        if not force and last >= 0 and (nxt is None or nxt <= last):
+            return []
+        self._end_said, why = True, self._end_why
+        return [Publish("end", (t, last, why)),
+                Note("info" if not why else "warn", "", f"end of the data at t = {t:.3f} s: "
+                     f"diagnosed through segment {last}{'; ' + why if why else ''}")]
+
+    def _end_overdue(self, now: float) -> list[object]:
+        """Health fallback (wall time) at the end of the data: residuals still missing after
+        ``stale_wall_s`` of silence are not waited for (those steps are skipped, not valid);
+        features that never came are named and the end is said without them."""
+        if self.end is None or self._end_said or self._flush_through is not None:
+            return []
+        quiet = max(self._end_wall, *(s.wall for s in self.models.sources.values()
+                                      if not math.isnan(s.wall)), -math.inf)
+        if now - quiet <= self.inputs.wall_timeout_s:
+            return []
+        last, newest = self.end[1], self.aligner._newest_index
+        if newest < last:
+            self._end_why = f"features {newest + 1}..{last} never came"
+        self._flush_through = last
+        return self._steps() + self._drained(force=True)
 
     def _remember(self, d: Any, st: Step, sym: Any) -> list[object]:
         frame = {"features": self._features.get(st.index, {}),
@@ -485,6 +555,14 @@ class SupervisorCore:
         elif name in ("reconcile", "reconcile_after_s"):
             key = "policy" if name == "reconcile" else name
             self.driver.policy = replace(self.driver.policy, **{key: value})
+
+    def clear_request(self, faults: list[str]) -> tuple[bool, str, list[FaultRecord]]:
+        """The ``/fdi/clear_faults`` answer: (success, message, records cleared)."""
+        try:
+            cleared = self.clear(faults)
+        except KeyError as exc:
+            return False, str(exc), []
+        return True, f"cleared {len(cleared)} fault(s)", cleared
 
     def clear(self, faults: list[str]) -> list[FaultRecord]:
         """Clear faults of the memory; clearing all restarts the diagnosis (initial bank)."""
@@ -553,7 +631,7 @@ class SupervisorCore:
             out.append(Note("warn" if k in stale else "info", "",
                             stale.get(k, f"{k}: receiving again")))
         self._stale = stale
-        return out + self.driver.tick(now, ready) + self._steps()
+        return out + self.driver.tick(now, ready) + self._steps() + self._end_overdue(now)
 
     def _models_stale(self, now: float) -> dict[str, str]:
         """A model is stale when features kept coming for ``model_wall_s`` after its last

@@ -2,7 +2,9 @@
 engine, one vector per sample for others), via :func:`fdi_ros.plants.make_preprocessor`.
 
 A gap in the block counter (a dropped block) is logged and the partial segment across it is
-marked invalid by the core, so a lost message never yields numbers that look valid.
+marked invalid by the core, so a lost message never yields numbers that look valid. At the
+source's end of the data it says ``end_of_features`` once every block is handled
+(:class:`fdi_ros.nodes.startup.EndOfFeatures`).
 
 Parameters: ``plant`` (a registered plant id; required).
 """
@@ -15,6 +17,7 @@ from rclpy.node import Node
 
 from fdi_ros import msgs
 from fdi_ros.nodes.common import DATA_QOS, Param, declare_params, run_node
+from fdi_ros.nodes.startup import EndOfFeatures
 
 PARAMS = (Param("plant", "", "plant id of the plant registry: which "
                 "preprocessor turns sensor blocks into feature vectors", read_only=True),)
@@ -33,8 +36,14 @@ class PreprocessorNode(Node):
         self._pub = self.create_publisher(Features, "/fdi/features", DATA_QOS)
         self.create_subscription(SensorBlock, "/fdi/sensor_block", self._on_block, DATA_QOS)
         self._last_index: int | None = None
+        self._end = EndOfFeatures(self)
+        self._last_features = -1
 
     def _on_block(self, m: Any) -> None:
+        self._push(m)
+        self._end.block(self._last_features)
+
+    def _push(self, m: Any) -> None:
         try:
             block = msgs.to_sample_block(m)
         except ValueError as exc:
@@ -54,6 +63,7 @@ class PreprocessorNode(Node):
             return
         for fv in feats:
             self._pub.publish(self._fac.features(fv))
+            self._last_features = fv.index
 
 
 def main(args: list[str] | None = None) -> int:

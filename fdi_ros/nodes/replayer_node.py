@@ -5,13 +5,15 @@ preprocessor, residual generators and supervisor run again on recorded measureme
 
 Parameters: ``bag`` (required), ``rate`` (1.0; 0 = as fast as the graph acknowledges; a live
 change applies from that moment on), ``topics`` (default: /fdi/sensor_block, /fdi/fault_truth),
-``publish_clock``, and the start gate of every source (:class:`fdi_ros.nodes.startup.SourceGate`:
+``publish_clock``, ``max_ahead_s`` (1.0: the data waits while it is that far ahead of the
+diagnosis on ``/fdi/diagnosis``; 0: never), and the start gate of every source
+(:class:`fdi_ros.nodes.startup.SourceGate`:
 ``min_subscribers`` matched readers, ``wait_for_ready`` the supervisor's ``/fdi/ready``,
 ``start_delay_s``).
 
 When the bag is exhausted it publishes one end-of-data event on ``/fdi/end_of_data``
 (``std_msgs/msg/Header``, transient-local: late joiners see it too; ``stamp`` = the bag time of
-the last message, ``frame_id`` = ``"end_of_data <count>"``).
+the last message, ``frame_id`` = ``"end_of_data <sensor blocks sent>"``).
 """
 
 from __future__ import annotations
@@ -36,6 +38,8 @@ from fdi_ros.nodes.common import (
 from fdi_ros.nodes.recorder_node import _msg_class
 from fdi_ros.nodes.startup import SOURCE_PARAMS, SourceGate
 
+STUCK_S = 3.0  # wall s without a new diagnosis after which a held replay goes on
+
 PARAMS = (
     Param("bag", "", "bag directory to replay (rosbag2, MCAP); required", read_only=True,
           check=required),
@@ -44,6 +48,9 @@ PARAMS = (
     Param("topics", ["/fdi/sensor_block", "/fdi/fault_truth"], "topics of the bag to publish",
           read_only=True),
     Param("publish_clock", True, "publish the bag's time on /clock", read_only=True),
+    Param("max_ahead_s", 1.0, "bag seconds the data may run ahead of the last diagnosis on "
+          "/fdi/diagnosis: a graph slower than the rate holds the replay back instead of "
+          "skipping segments (0: never wait)", range=(0.0, 3600.0)),
     *SOURCE_PARAMS,
 )
 
@@ -70,11 +77,42 @@ class ReplayerNode(Node):
         self._pacer = Pacer(float(self.get_parameter("rate").value))
         follow_rate(self, self._pacer, "rate", lambda: self._last_ns * 1e-9, "bag time")
         self._gate = SourceGate(self, self._pubs.get("/fdi/sensor_block"))
-        self.count = 0
+        self.count = self.blocks = self.held = 0
+        from fdi_msgs.msg import Diagnosis
+
+        self._diag_t = -float("inf")  # plant time of the last diagnosis seen
+        self._diag_wall = -float("inf")  # its arrival (wall)
+        self._since: float | None = None  # wall time the replay started to wait
+        self._diag = self.create_subscription(Diagnosis, "/fdi/diagnosis", self._on_diagnosis,
+                                              DATA_QOS)
         self.done = False
         self.create_timer(0.005, self._tick)
         self.get_logger().info(f"replaying {path} ({', '.join(self._pubs)}) at rate "
                                f"{self._pacer.rate or 'max'}")
+
+    def _on_diagnosis(self, m: Any) -> None:
+        self._diag_t, self._diag_wall = max(self._diag_t, float(m.t_s)), time.monotonic()
+
+    def _held(self, t: float) -> bool:
+        """Wait while the data is ``max_ahead_s`` ahead of the diagnosis (a supervisor in the
+        graph): a replay is paced by what the graph can diagnose, so every segment is
+        diagnosed as offline, however high the rate. A diagnosis that has not moved for
+        ``STUCK_S`` wall seconds (a model that stopped answering) is not waited for: the data
+        goes on and the supervisor's plant-time rules (``lag_s``) decide."""
+        ahead = float(self.get_parameter("max_ahead_s").value)
+        if not ahead or t <= max(self._t0_s, self._diag_t) + ahead \
+                or not self._diag.get_publisher_count():
+            self._since = None
+            return False
+        now = time.monotonic()
+        since = self._since = now if self._since is None else self._since
+        if now - max(since, self._diag_wall) > STUCK_S:
+            return False
+        if not self.held:
+            self.get_logger().warn(f"the graph is slower than rate {self._pacer.rate or 'max'}: "
+                                   f"the replay waits for the diagnosis ({ahead:g} s ahead)")
+        self.held += 1
+        return True
 
     def _tick(self) -> None:
         if self.done or not self._gate.check(time.monotonic(), self._pacer, self._t0_s):
@@ -84,10 +122,13 @@ class ReplayerNode(Node):
                 self._next = next(self._it, None)
                 if self._next is None:
                     self.done = True
-                    self._gate.end(self._last_ns, self.count)
-                    self.get_logger().info(f"replay finished: {self.count} messages")
+                    self._gate.end(self._last_ns, self.blocks)
+                    self.get_logger().info(f"replay finished: {self.count} messages" + (
+                        f" (held back for the diagnosis {self.held} times)" if self.held else ""))
                     return
             topic, _typ, t_ns, data = self._next
+            if self._held(t_ns * 1e-9):
+                return
             if self._pacer.rate > 0:
                 if t_ns * 1e-9 > self._pacer.target(time.monotonic()):
                     return
@@ -97,6 +138,7 @@ class ReplayerNode(Node):
             self._pubs[topic].publish(bytes(data))
             self._clock_out.publish(divmod(t_ns, 1_000_000_000))
             self.count += 1
+            self.blocks += topic == "/fdi/sensor_block"
             self._last_ns = t_ns
             self._next = None
 

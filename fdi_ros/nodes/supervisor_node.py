@@ -1,7 +1,8 @@
 """Expert supervisor node: the ROS edge of :class:`fdi_ros.core.supervision.SupervisorCore`.
 Parameters, subscriptions (features, residuals, sensor-block stamps, every bank node's
 ``transition_event``), async lifecycle clients, ``/fdi/get_faults``, ``/fdi/clear_faults``,
-``/fdi/ready`` (start-up handshake), timers. All decisions are in the core."""
+``/fdi/ready`` (start-up handshake), the end of the diagnosis, timers. All decisions are in
+the core."""
 
 from __future__ import annotations
 
@@ -23,14 +24,14 @@ from std_msgs.msg import Header
 from fdi_ros import bag, msgs
 from fdi_ros.core.bankdriver import ChangeState, GetState, Note
 from fdi_ros.core.supervision import GATE_TOPICS, PARAMS, Publish, SupervisorCore
+from fdi_ros.nodes import startup as su
 from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, run_node
-from fdi_ros.nodes.startup import READY_TOPIC, declare_table
 
 
 class SupervisorNode(Node):
     def __init__(self) -> None:
         super().__init__("fdi_supervisor")
-        p = declare_table(self, PARAMS)
+        p = su.declare_table(self, PARAMS)
         self.core = SupervisorCore.from_params(p)
         self.add_on_set_parameters_callback(self._on_set)
         self._fac = msgs.MessageFactory("rclpy")
@@ -45,7 +46,9 @@ class SupervisorNode(Node):
         self.pub = {"symptoms": self.create_publisher(Symptoms, "/fdi/symptoms", DATA_QOS),
                     "diagnosis": self.create_publisher(Diagnosis, "/fdi/diagnosis", DATA_QOS),
                     "ros": self.create_publisher(DiagnosticArray, "/diagnostics", 10),
-                    "ready": self.create_publisher(Header, READY_TOPIC, LATCHED_QOS)}
+                    "ready": self.create_publisher(Header, su.READY_TOPIC, LATCHED_QOS),
+                    "end": self.create_publisher(Header, su.END_OF_DIAGNOSIS_TOPIC, LATCHED_QOS)}
+        self.create_subscription(Header, su.END_OF_FEATURES_TOPIC, self._on_end, LATCHED_QOS)
         self._subs = {t: self.create_subscription(c, t, self._safe(f, g), DATA_QOS) for t, c, f, g
                       in (("/fdi/residuals", Residuals, msgs.to_residuals, self.core.residual),
                           ("/fdi/features", Features, msgs.to_features, self.core.features))}
@@ -74,6 +77,10 @@ class SupervisorNode(Node):
                                        f"ready_timeout_s without: {'; '.join(self.core.waiting)}")
                 self.pub["ready"].publish(Header(frame_id="ready"))
                 self._gate = None
+
+    def _on_end(self, m: Any) -> None:
+        if (e := su.read_end(m, "end_of_features")) is not None:
+            self._do(self.core.end_of_features(e[0], e[1], time.monotonic()))
 
     def _on_set(self, params: list) -> SetParametersResult:
         try:
@@ -111,29 +118,22 @@ class SupervisorNode(Node):
             elif isinstance(a, Publish) and a.what == "confirmed":
                 self.get_logger().info(bag.write_snapshot(self.core.snapshot_path(a.value),
                                                           self.core.ring))
+            elif isinstance(a, Publish) and a.what == "end":
+                self.pub["end"].publish(su.end_message("end_of_diagnosis", *a.value[:2]))
             elif isinstance(a, Publish):  # diagnosis, symptoms
                 self.pub[a.what].publish(self._fac.diagnosis(a.value) if a.what == "diagnosis"
                                          else self._fac.symptom_state(*a.value))
 
     def _done(self, fut: Any, a: Any) -> None:
-        now, drv = time.monotonic(), self.core.driver
         try:
             r, err = fut.result(), ""
         except Exception as exc:  # a failed call is reported, never fatal
             r, err = None, str(exc)
-        if isinstance(a, ChangeState):
-            self._do(drv.on_change_result(a.model_id, None if r is None else bool(r.success),
-                                          now, a.goal, err))
-        else:
-            self._do(drv.on_get_result(a.model_id, None if r is None else
-                                       int(r.current_state.id), now, err))
+        self._do(self.core.driver.on_answer(a, r, time.monotonic(), err))
 
     def _clear_faults(self, req: Any, res: Any) -> Any:
-        try:
-            res.cleared = msgs.fault_records(self.core.clear(list(req.faults)))
-            res.success, res.message = True, f"cleared {len(res.cleared)} fault(s)"
-        except KeyError as exc:
-            res.success, res.message = False, str(exc)
+        res.success, res.message, cleared = self.core.clear_request(list(req.faults))
+        res.cleared = msgs.fault_records(cleared)
         return res
 
     def _publish_diagnostics(self) -> None:

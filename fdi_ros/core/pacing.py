@@ -67,3 +67,40 @@ class Pacer:
         if self.rate == 0.0:
             return math.inf
         return self._t0 + (wall - self._wall0) * self.rate
+
+
+class HoldBack:
+    """A replay paced by what the graph can diagnose: the data waits while it is ``ahead_s``
+    of plant time ahead of the last diagnosis, so a graph slower than the replay rate holds
+    the replay back instead of skipping segments, and every segment is diagnosed as offline
+    however high the rate. A diagnosis that has not moved for ``stuck_s`` wall seconds (a
+    model that stopped answering) is not waited for (health only): the data goes on and the
+    supervisor's plant-time rules decide. ``ahead_s`` 0: never wait.
+    """
+
+    def __init__(self, ahead_s: float = 1.0, stuck_s: float = 3.0) -> None:
+        self.ahead_s, self.stuck_s = float(ahead_s), float(stuck_s)
+        self.diag_t = self._diag_wall = -math.inf
+        self._first: float | None = None  # plant time of the first block
+        self._since: float | None = None  # wall time the data started to wait
+        self.held = 0  # checks that held the data back
+
+    def diagnosis(self, t: float, wall: float) -> None:
+        """A diagnosis for plant time ``t`` arrived at ``wall``."""
+        if t > self.diag_t:
+            self.diag_t, self._diag_wall = float(t), wall
+
+    def hold(self, t: float, wall: float, watched: bool = True) -> bool:
+        """Must the block of plant time ``t`` wait? ``watched``: a diagnosis publisher is
+        there (without one nothing is waited for)."""
+        if math.isnan(t):
+            return False  # a block that cannot be placed in plant time is never held
+        self._first = t if self._first is None else self._first
+        if not self.ahead_s or not watched or t <= max(self._first, self.diag_t) + self.ahead_s:
+            self._since = None
+            return False
+        since = self._since = wall if self._since is None else self._since
+        if wall - max(since, self._diag_wall) > self.stuck_s:
+            return False
+        self.held += 1
+        return True

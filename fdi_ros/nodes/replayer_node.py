@@ -24,7 +24,8 @@ from typing import Any
 from rclpy.node import Node
 
 from fdi_ros import bag as bagio
-from fdi_ros.core.pacing import Pacer
+from fdi_ros import msgs
+from fdi_ros.core.pacing import HoldBack, Pacer
 from fdi_ros.nodes.common import (
     DATA_QOS,
     LATCHED_QOS,
@@ -37,8 +38,6 @@ from fdi_ros.nodes.common import (
 )
 from fdi_ros.nodes.recorder_node import _msg_class
 from fdi_ros.nodes.startup import SOURCE_PARAMS, SourceGate
-
-STUCK_S = 3.0  # wall s without a new diagnosis after which a held replay goes on
 
 PARAMS = (
     Param("bag", "", "bag directory to replay (rosbag2, MCAP); required", read_only=True,
@@ -77,41 +76,27 @@ class ReplayerNode(Node):
         self._pacer = Pacer(float(self.get_parameter("rate").value))
         follow_rate(self, self._pacer, "rate", lambda: self._last_ns * 1e-9, "bag time")
         self._gate = SourceGate(self, self._pubs.get("/fdi/sensor_block"))
-        self.count = self.blocks = self.held = 0
+        self.count = self.blocks = 0
         from fdi_msgs.msg import Diagnosis
 
-        self._diag_t = -float("inf")  # plant time of the last diagnosis seen
-        self._diag_wall = -float("inf")  # its arrival (wall)
-        self._since: float | None = None  # wall time the replay started to wait
-        self._diag = self.create_subscription(Diagnosis, "/fdi/diagnosis", self._on_diagnosis,
-                                              DATA_QOS)
+        self._hold = HoldBack()
+        self._diag = self.create_subscription(Diagnosis, "/fdi/diagnosis", lambda m: (
+            self._hold.diagnosis(float(m.t_s), time.monotonic())),  # type: ignore[attr-defined]
+            DATA_QOS)
         self.done = False
         self.create_timer(0.005, self._tick)
         self.get_logger().info(f"replaying {path} ({', '.join(self._pubs)}) at rate "
                                f"{self._pacer.rate or 'max'}")
 
-    def _on_diagnosis(self, m: Any) -> None:
-        self._diag_t, self._diag_wall = max(self._diag_t, float(m.t_s)), time.monotonic()
-
-    def _held(self, t: float) -> bool:
-        """Wait while the data is ``max_ahead_s`` ahead of the diagnosis (a supervisor in the
-        graph): a replay is paced by what the graph can diagnose, so every segment is
-        diagnosed as offline, however high the rate. A diagnosis that has not moved for
-        ``STUCK_S`` wall seconds (a model that stopped answering) is not waited for: the data
-        goes on and the supervisor's plant-time rules (``lag_s``) decide."""
-        ahead = float(self.get_parameter("max_ahead_s").value)
-        if not ahead or t <= max(self._t0_s, self._diag_t) + ahead \
-                or not self._diag.get_publisher_count():
-            self._since = None
+    def _held(self, t: float) -> bool:  # t: the block's plant time (its header stamp)
+        """See :class:`fdi_ros.core.pacing.HoldBack`."""
+        self._hold.ahead_s = float(self.get_parameter("max_ahead_s").value)
+        if not self._hold.hold(t, time.monotonic(), self._diag.get_publisher_count() > 0):
             return False
-        now = time.monotonic()
-        since = self._since = now if self._since is None else self._since
-        if now - max(since, self._diag_wall) > STUCK_S:
-            return False
-        if not self.held:
+        if self._hold.held == 1:
             self.get_logger().warn(f"the graph is slower than rate {self._pacer.rate or 'max'}: "
-                                   f"the replay waits for the diagnosis ({ahead:g} s ahead)")
-        self.held += 1
+                                   f"the replay waits for the diagnosis ({self._hold.ahead_s:g} "
+                                   "s ahead)")
         return True
 
     def _tick(self) -> None:
@@ -123,11 +108,12 @@ class ReplayerNode(Node):
                 if self._next is None:
                     self.done = True
                     self._gate.end(self._last_ns, self.blocks)
+                    n = self._hold.held
                     self.get_logger().info(f"replay finished: {self.count} messages" + (
-                        f" (held back for the diagnosis {self.held} times)" if self.held else ""))
+                        f" (held back for the diagnosis {n} times)" if n else ""))
                     return
             topic, _typ, t_ns, data = self._next
-            if self._held(t_ns * 1e-9):
+            if topic == "/fdi/sensor_block" and self._held(msgs.raw_header_stamp(bytes(data))):
                 return
             if self._pacer.rate > 0:
                 if t_ns * 1e-9 > self._pacer.target(time.monotonic()):

@@ -21,6 +21,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from fdi_ros.core.parallel import map_processes, single_threaded_numerics
+
 TIMING_KEYS = ("wall_seconds", "realtime_factor")
 ENGINES = ("local", "dask")
 
@@ -180,16 +182,6 @@ def _one_numerics_thread() -> Any:
     return threadpool_limits(1)
 
 
-def _single_threaded_numerics() -> None:
-    """One BLAS thread per worker process: N workers on N cores, not N x threads."""
-    try:
-        from threadpoolctl import threadpool_limits
-
-        threadpool_limits(1)
-    except ImportError:
-        pass
-
-
 def _bag_size(path: str) -> int:
     try:
         return sum(f.stat().st_size for f in Path(path).glob("*.mcap"))
@@ -201,7 +193,6 @@ def _local_pool(items: list[tuple[str, str | None]], workers: int) -> list[dict[
     """The bags on ``workers`` local processes, the largest first (the pool stays busy to
     the end); forked where the platform can (no start-up imports), else spawned."""
     import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
 
     method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
     if method == "fork":   # the workers inherit the modules instead of importing them each
@@ -209,10 +200,7 @@ def _local_pool(items: list[tuple[str, str | None]], workers: int) -> list[dict[
         import fdi_ros.core.graphconfig  # noqa: F401
         import fdi_ros.plants  # noqa: F401
     order = sorted(range(len(items)), key=lambda i: -_bag_size(items[i][0]))
-    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context(method),
-                             initializer=_single_threaded_numerics) as pool:
-        futures = {i: pool.submit(_one, items[i]) for i in order}
-        return [futures[i].result() for i in range(len(items))]
+    return map_processes(_one, items, workers=workers, method=method, order=order)
 
 
 def local_dask_cluster(workers: int) -> Any:
@@ -238,7 +226,7 @@ def _dask(items: list[tuple[str, str | None]], workers: int,
     cluster = None if address else local_dask_cluster(workers)
     client = Client(address) if address else Client(cluster)
     try:
-        client.run(_single_threaded_numerics)
+        client.run(single_threaded_numerics)
         futures = client.map(_one, items, pure=False)
         return list(client.gather(futures))
     finally:

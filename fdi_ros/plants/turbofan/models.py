@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from fdi_ros.core.parallel import map_processes
 from fdi_ros.core.tsfuzzy import StackedTS, TSFitResult, fit_ts
 from fdi_ros.plants.turbofan import plant as tfp
 
@@ -313,6 +314,13 @@ class Mixture:
         return out
 
 
+def _fit_node(job: tuple[np.ndarray, np.ndarray, int, int]) -> TSFitResult:
+    """One node's TS system for one output (a worker process)."""
+    x, y, n_rules, max_nfev = job
+    return fit_ts(x, y, n_rules=n_rules, premise=0, offset=NORM_OFFSET, scale=NORM_SCALE,
+                  max_nfev=max_nfev)
+
+
 def train_global(grid: GridSpec, *, n_rules: int = 3, seed: int = 0, duration_s: float = 20.0,
                  max_nfev: int = 40, plant: tfp.Turbofan | None = None,
                  progress: bool = True) -> GlobalModel:
@@ -341,12 +349,13 @@ def train_global(grid: GridSpec, *, n_rules: int = 3, seed: int = 0, duration_s:
     x = sim["x"]
     inputs = np.concatenate([x[:, :-1], wf[:, :-1, None]], axis=-1)  # (N, steps, 3)
     target = np.diff(x, axis=1) / ts
-    fits1: list[TSFitResult] = []
-    fits2: list[TSFitResult] = []
-    for j in tqdm(range(n), desc="training TS node models", unit="node", disable=not progress):
-        for out, fits in ((0, fits1), (1, fits2)):
-            fits.append(fit_ts(inputs[j], target[j, :, out], n_rules=n_rules, premise=0,
-                               offset=NORM_OFFSET, scale=NORM_SCALE, max_nfev=max_nfev))
+    # the 2 N fits are independent: on every core (results equal the serial run's)
+    jobs = [(inputs[j], target[j, :, out], n_rules, max_nfev) for j in range(n)
+            for out in (0, 1)]
+    with tqdm(total=len(jobs), desc="training TS node models", unit="fit",
+              disable=not progress) as bar:
+        fits = map_processes(_fit_node, jobs, progress=lambda k, _: bar.update(k - bar.n))
+    fits1, fits2 = fits[0::2], fits[1::2]
     seconds = time.perf_counter() - t0
     allfits = fits1 + fits2
     report = TrainingReport(

@@ -86,7 +86,7 @@ class GraphWatcher:
         if watch_end:
             from std_msgs.msg import Header
 
-            from fdi_ros.nodes.startup import END_OF_DATA_TOPIC, END_OF_DIAGNOSIS_TOPIC, read_end
+            from fdi_ros.nodes.endofdata import END_OF_DATA_TOPIC, END_OF_DIAGNOSIS_TOPIC, read_end
 
             def on_end(m: Any) -> None:
                 if (e := read_end(m, "end_of_diagnosis")) is not None:

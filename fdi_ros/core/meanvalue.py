@@ -28,7 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from fdi_ros.core.discrepancy.context import R_AIR, LeakSpec, smooth_derivative
+from fdi_ros.core.constants import R_AIR
+from fdi_ros.core.discrepancy.context import LeakSpec, smooth_derivative
 from fdi_ros.core.measured import Measured
 
 

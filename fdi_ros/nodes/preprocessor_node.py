@@ -4,7 +4,7 @@ engine, one vector per sample for others), via :func:`fdi_ros.plants.make_prepro
 A gap in the block counter (a dropped block) is logged and the partial segment across it is
 marked invalid by the core, so a lost message never yields numbers that look valid. At the
 source's end of the data it says ``end_of_features`` once every block is handled
-(:class:`fdi_ros.nodes.startup.EndOfFeatures`).
+(:class:`fdi_ros.nodes.endofdata.EndOfFeatures`).
 
 Parameters: ``plant`` (a registered plant id; required).
 """
@@ -17,7 +17,7 @@ from rclpy.node import Node
 
 from fdi_ros import msgs
 from fdi_ros.nodes.common import DATA_QOS, Param, declare_params, run_node
-from fdi_ros.nodes.startup import EndOfFeatures
+from fdi_ros.nodes.endofdata import EndOfFeatures
 
 PARAMS = (Param("plant", "", "plant id of the plant registry: which "
                 "preprocessor turns sensor blocks into feature vectors", read_only=True),)

@@ -13,44 +13,17 @@ would differ from ``fdi-ros diagnose``. At its end a source publishes the end-of
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Mapping
 from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 
 from fdi_ros.nodes.common import LATCHED_QOS, Param
+from fdi_ros.nodes.endofdata import END_OF_DATA_TOPIC, end_message
 
-# The supervisor's "the graph is ready for data" signal, and a source's "no more data" event:
-# std_msgs/msg/Header, transient-local (a late joiner still sees them).
+# The supervisor's "the graph is ready for data" signal: std_msgs/msg/Header, transient-local
+# (a late joiner still sees it). The end of the data: fdi_ros.nodes.endofdata.
 READY_TOPIC = "/fdi/ready"
-END_OF_DATA_TOPIC = "/fdi/end_of_data"
-# The end passed down the pipeline, each stage once it has handled everything before it:
-# the source's "end_of_data <sensor blocks sent>", the preprocessor's
-# "end_of_features <last feature index>" (-1: none) once it has every block, the supervisor's
-# "end_of_diagnosis <last feature index>" once that segment is diagnosed. ``stamp``: the
-# plant time the data ended. A run has ended when the end of the diagnosis has come and the
-# diagnosis it names has been seen (:func:`fdi_ros.graphwatch.run_ended`).
-END_OF_FEATURES_TOPIC = "/fdi/end_of_features"
-END_OF_DIAGNOSIS_TOPIC = "/fdi/end_of_diagnosis"
-
-
-def end_message(kind: str, t_s: float, n: int) -> Any:
-    """A ``std_msgs/Header`` end event ``"<kind> <n>"`` stamped with plant time ``t_s``."""
-    from std_msgs.msg import Header
-
-    m = Header(frame_id=f"{kind} {int(n)}")
-    m.stamp.sec, m.stamp.nanosec = divmod(max(0, round(float(t_s) * 1e9)), 1_000_000_000)
-    return m
-
-
-def read_end(m: Any, kind: str) -> tuple[float, int] | None:
-    """(plant time, n) of an end event of ``kind``; None for anything else."""
-    word, _, n = str(m.frame_id).partition(" ")
-    try:
-        return (m.stamp.sec + m.stamp.nanosec * 1e-9, int(n)) if word == kind else None
-    except ValueError:
-        return None
 SOURCE_PARAMS = (
     Param("min_subscribers", 1, "the data starts once this many readers of /fdi/sensor_block "
           "are matched (the preprocessor, the supervisor, a recorder; earlier blocks would be "
@@ -107,48 +80,6 @@ class SourceGate:
         """The end-of-data event: ``stamp`` = time of the last data, ``frame_id`` =
         ``"end_of_data <sensor blocks sent>"``."""
         self._end.publish(end_message("end_of_data", t_ns * 1e-9, blocks))
-
-
-class EndOfFeatures:
-    """The preprocessor's part of the end: count the sensor blocks received and, once the
-    source's end event says no more will come and all of them are here, publish
-    ``end_of_features <last feature index>``. Blocks lost on the way are waited for
-    ``wait_s`` wall seconds of silence (health only), then named and not waited for."""
-
-    def __init__(self, node: Any, wait_s: float = 2.0) -> None:
-        from std_msgs.msg import Header
-
-        self._node, self._wait_s = node, wait_s
-        self.blocks, self.last_index, self._wall = 0, -1, time.monotonic()
-        self._end: tuple[float, int] | None = None
-        self._said = False
-        self._pub = node.create_publisher(Header, END_OF_FEATURES_TOPIC, LATCHED_QOS)
-        node.create_subscription(Header, END_OF_DATA_TOPIC, self._on_end, LATCHED_QOS)
-        node.create_timer(0.25, self.check)
-
-    def block(self, last_index: int) -> None:
-        """A sensor block was handled; ``last_index``: the last feature index published."""
-        self.blocks, self.last_index, self._wall = self.blocks + 1, last_index, time.monotonic()
-        self.check()
-
-    def _on_end(self, m: Any) -> None:
-        if self._end is None and (end := read_end(m, "end_of_data")) is not None:
-            self._end, self._wall = end, max(self._wall, time.monotonic())
-            self.check()
-
-    def check(self) -> None:
-        if self._end is None or self._said:
-            return
-        t, sent = self._end
-        if self.blocks < sent:
-            if time.monotonic() - self._wall <= self._wait_s:
-                return
-            self._node.get_logger().warn(f"end of data: {sent - self.blocks} of {sent} sensor "
-                                         "blocks never arrived")
-        self._said = True
-        self._pub.publish(end_message("end_of_features", t, self.last_index))
-        self._node.get_logger().info(f"end of data at t = {t:.3f} s: {self.blocks} blocks, "
-                                     f"last features {self.last_index}")
 
 
 def declare_table(node: Any, table: Mapping[str, tuple]) -> dict[str, Any]:

@@ -1,8 +1,6 @@
-"""Expert supervisor node: the ROS edge of :class:`fdi_ros.core.supervision.SupervisorCore`.
-Parameters, subscriptions (features, residuals, sensor-block stamps, every bank node's
-``transition_event``), async lifecycle clients, ``/fdi/get_faults``, ``/fdi/clear_faults``,
-``/fdi/ready`` (start-up handshake), the end of the diagnosis, timers. All decisions are in
-the core."""
+"""Expert supervisor node, the ROS edge of :class:`fdi_ros.core.supervision.SupervisorCore`:
+parameters, subscriptions (features, residuals, block stamps, each bank node's transitions),
+lifecycle clients, fault services, ``/fdi/ready``, the end of the diagnosis, timers."""
 
 from __future__ import annotations
 
@@ -24,6 +22,7 @@ from std_msgs.msg import Header
 from fdi_ros import bag, msgs
 from fdi_ros.core.bankdriver import ChangeState, GetState, Note
 from fdi_ros.core.supervision import GATE_TOPICS, PARAMS, Publish, SupervisorCore
+from fdi_ros.nodes import endofdata as eod
 from fdi_ros.nodes import startup as su
 from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, run_node
 
@@ -47,8 +46,8 @@ class SupervisorNode(Node):
                     "diagnosis": self.create_publisher(Diagnosis, "/fdi/diagnosis", DATA_QOS),
                     "ros": self.create_publisher(DiagnosticArray, "/diagnostics", 10),
                     "ready": self.create_publisher(Header, su.READY_TOPIC, LATCHED_QOS),
-                    "end": self.create_publisher(Header, su.END_OF_DIAGNOSIS_TOPIC, LATCHED_QOS)}
-        self.create_subscription(Header, su.END_OF_FEATURES_TOPIC, self._on_end, LATCHED_QOS)
+                    "end": self.create_publisher(Header, eod.END_OF_DIAGNOSIS_TOPIC, LATCHED_QOS)}
+        self.create_subscription(Header, eod.END_OF_FEATURES_TOPIC, self._on_end, LATCHED_QOS)
         self._subs = {t: self.create_subscription(c, t, self._safe(f, g), DATA_QOS) for t, c, f, g
                       in (("/fdi/residuals", Residuals, msgs.to_residuals, self.core.residual),
                           ("/fdi/features", Features, msgs.to_features, self.core.features))}
@@ -79,7 +78,7 @@ class SupervisorNode(Node):
                 self._gate = None
 
     def _on_end(self, m: Any) -> None:
-        if (e := su.read_end(m, "end_of_features")) is not None:
+        if (e := eod.read_end(m, "end_of_features")) is not None:
             self._do(self.core.end_of_features(e[0], e[1], time.monotonic()))
 
     def _on_set(self, params: list) -> SetParametersResult:
@@ -119,7 +118,7 @@ class SupervisorNode(Node):
                 self.get_logger().info(bag.write_snapshot(self.core.snapshot_path(a.value),
                                                           self.core.ring))
             elif isinstance(a, Publish) and a.what == "end":
-                self.pub["end"].publish(su.end_message("end_of_diagnosis", *a.value[:2]))
+                self.pub["end"].publish(eod.end_message("end_of_diagnosis", *a.value[:2]))
             elif isinstance(a, Publish):  # diagnosis, symptoms
                 self.pub[a.what].publish(self._fac.diagnosis(a.value) if a.what == "diagnosis"
                                          else self._fac.symptom_state(*a.value))

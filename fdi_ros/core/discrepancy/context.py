@@ -14,9 +14,9 @@ from typing import Any
 
 import numpy as np
 
+from fdi_ros.core.constants import R_AIR
 from fdi_ros.core.measured import Measured
 
-R_AIR = 287.06  # J/(kg K)
 KAPPA_AIR = 1.4
 
 

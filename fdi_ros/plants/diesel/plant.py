@@ -72,6 +72,7 @@ from typing import Any
 
 import numpy as np
 
+from fdi_ros.core.constants import R_AIR
 from fdi_ros.core.crank import CrankSegmenter
 from fdi_ros.core.types import FaultEvent, SampleBlock
 
@@ -105,7 +106,7 @@ class DieselParams:
     # ambient and gases
     p_amb: float = 101325.0          # Pa
     T_amb: float = 298.0             # K
-    R: float = 287.0                 # J/(kg K)
+    R: float = R_AIR                 # J/(kg K), dry air (fdi_ros.core.constants)
     kappa: float = 1.4               # air
     cp: float = 1005.0               # J/(kg K)
     kappa_e: float = 1.33            # exhaust gas

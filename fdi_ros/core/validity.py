@@ -52,10 +52,14 @@ class InputRange:
         """The identification held this input fixed (no span)."""
         return self.hi == self.lo
 
+    @property
+    def _unit(self) -> str:
+        """The unit as a suffix (" kg/m^3"); empty for a ratio or no unit."""
+        return f" {self.unit}" if self.unit and self.unit != "1" else ""
+
     def describe(self) -> str:
-        u = f" {self.unit}" if self.unit and self.unit != "1" else ""
         span = f"{self.lo:.4g}" if self.held else f"{self.lo:.4g}..{self.hi:.4g}"
-        return f"{span}{u}"
+        return f"{span}{self._unit}"
 
     def contains(self, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, dtype=float)
@@ -68,9 +72,8 @@ class InputRange:
         if not math.isfinite(x):
             return f"{self.name} not finite (identified at {self.describe()})"
         if x < self.lo - self.tol or x > self.hi + self.tol:
-            u = f" {self.unit}" if self.unit and self.unit != "1" else ""
             where = "held at" if self.held else "over"
-            return f"{self.name} = {x:.4g}{u} outside the identified region ({where} " \
+            return f"{self.name} = {x:.4g}{self._unit} outside the identified region ({where} " \
                    f"{self.describe()})"
         return ""
 

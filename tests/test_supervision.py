@@ -369,6 +369,10 @@ def test_end_of_the_data_said_once_the_last_segment_is_diagnosed(tmp_path):
     out = _residuals(core, 5, 0.0, 1.5)
     assert ends(out) == [(0.09, 5, "")] and core.last.index == 5
     assert ends(core.tick(9.0, ready, None)) == []  # said once
+    # a second source's data into the running graph: its own end said in turn
+    for k in range(6, 9):
+        _feed(core, k, 0.0, 10.0)
+    assert ends(core.end_of_features(0.135, 8, 10.0)) == [(0.135, 8, "")]
     # a model that never answers for the last segment: after stale_wall_s of silence the step
     # is taken without it (skipped, not valid) and the end said with the reason
     core = _core(tmp_path)

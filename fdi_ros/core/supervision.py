@@ -384,6 +384,10 @@ class SupervisorCore:
     def features(self, fv: Any, wall: float) -> list[object]:
         """A feature vector (:class:`fdi_ros.core.types.FeatureVector`) arrived."""
         self.inputs.seen("features", fv.t_end, wall)
+        if self._end_said and self.end is not None and fv.index > self.end[1]:
+            # features after the end said: a new source's data (a second replay into a
+            # running graph), whose own end will be said again
+            self.end, self._end_said, self._flush_through, self._end_why = None, False, None, ""
         self.aligner.add_features(fv.index, fv.t_end)
         self._features[fv.index] = fv.as_dict()
         self._keep(fv.t_end, "features", fv)
@@ -444,9 +448,8 @@ class SupervisorCore:
             # less than lag_s changes nothing (the diagnosis equals offline); a silent model
             # is also reported STALE on /diagnostics, which is health only (wall time).
             # No-elimination keeps the rest from isolating a fault an away model would
-            # explain, and names it "(model away)".
-            # a model away from its desired state (off line, external change): its residuals
-            # are not valid
+            # explain, and names it "(model away)". A model away from its desired state (off
+            # line, external change) at the step: its residuals are not valid.
             st.residuals = {m: r for m, r in st.residuals.items() if m in expected}
             skip = not st.complete
             if skip:

@@ -57,12 +57,17 @@ class EndOfFeatures:
         node.create_timer(0.25, self.check)
 
     def block(self, last_index: int) -> None:
-        """A sensor block was handled; ``last_index``: the last feature index published."""
+        """A sensor block was handled; ``last_index``: the last feature index published. A
+        block after the end was said is a new source's data (a second replay into a running
+        graph): counted afresh, and its own end said again."""
+        if self._said:
+            self.blocks, self._end, self._said = 0, None, False
         self.blocks, self.last_index, self._wall = self.blocks + 1, last_index, time.monotonic()
         self.check()
 
     def _on_end(self, m: Any) -> None:
-        if self._end is None and (end := read_end(m, "end_of_data")) is not None:
+        if self._end is None and not self._said and \
+                (end := read_end(m, "end_of_data")) is not None:
             self._end, self._wall = end, max(self._wall, time.monotonic())
             self.check()
 

@@ -389,4 +389,6 @@ def test_end_of_the_data_said_once_the_last_segment_is_diagnosed(tmp_path):
     for k in range(3):
         _feed(core, k, 0.0, 0.0)
     out = core.end_of_features(0.09, 5, 0.0) + core.tick(10.0, ready, None)
-    assert len(ends(out)) == 1 and "never came" in ends(out)[0][2]
+    # the end names the last segment diagnosed (2), which a watcher can see, and why
+    assert len(ends(out)) == 1 and ends(out)[0][:2] == (0.09, 2) \
+        and "features 3..5 never came" in ends(out)[0][2]

@@ -487,8 +487,9 @@ class SupervisorCore:
     def end_of_features(self, t: float, last_index: int, wall: float) -> list[object]:
         """The preprocessor's end of the features: ``last_index`` is the index of its last
         feature vector (-1: none), ``t`` the plant time the data ended. Once the step of that
-        index is taken the supervisor says ``Publish("end", (t, last_index, why))``: the
-        whole run is diagnosed (see :meth:`tick` for residuals that never come)."""
+        index is taken the supervisor says ``Publish("end", (t, last diagnosed index, why))``:
+        the whole run is diagnosed (see :meth:`tick` for residuals or features that never
+        come)."""
         if self.end is None:
             self.end, self._end_wall = (float(t), int(last_index)), wall
         return self._steps()
@@ -500,10 +501,13 @@ class SupervisorCore:
         nxt = self.aligner.next_index
         if not force and last >= 0 and (nxt is None or nxt <= last):
             return []
+        # the end names the last segment actually diagnosed (a watcher waits until it has
+        # seen that diagnosis): the last feature index unless features never came
+        done = int(self.last.index) if self.last is not None else -1
         self._end_said, why = True, self._end_why
-        return [Publish("end", (t, last, why)),
+        return [Publish("end", (t, done, why)),
                 Note("info" if not why else "warn", "", f"end of the data at t = {t:.3f} s: "
-                     f"diagnosed through segment {last}{'; ' + why if why else ''}")]
+                     f"diagnosed through segment {done}{'; ' + why if why else ''}")]
 
     def _end_overdue(self, now: float) -> list[object]:
         """Health fallback (wall time) at the end of the data: residuals still missing after

@@ -7,22 +7,14 @@ export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export ROS_DOMAIN_ID ?= $(shell echo $$(( ($$$$ % 100) + 100 )))
 export PYTHONUNBUFFERED := 1
 
-.PHONY: setup banks demo test test-fast bench clean
+.PHONY: setup demo test test-fast bench clean
 setup:
 	@bash scripts/setup.sh
 
 demo: setup
 	$(VENV)/bin/fdi-ros demo --out out/demo
 
-# The models the tests' graphs use, identified by the product's own `fdi-ros build-bank` when
-# missing: the diesel and turbofan banks side by side (each also spreads its own independent
-# fits over the cores), so the one-off identification overlaps instead of queueing.
-banks: setup
-	@$(VENV)/bin/fdi-ros build-bank config/diesel.yaml --no-progress & d=$$!; \
-	 $(VENV)/bin/fdi-ros build-bank config/turbofan.yaml --no-progress & t=$$!; \
-	 wait $$d; a=$$?; wait $$t; b=$$?; [ $$a -eq 0 ] && [ $$b -eq 0 ]
-
-test: banks
+test: setup
 	$(VENV)/bin/python -m pytest tests
 
 test-fast: setup

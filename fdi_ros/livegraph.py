@@ -38,6 +38,7 @@ class LiveRun:
     final_t: float = math.nan
     wall_s: float = math.nan
     bag: str | None = None
+    ended: bool = False  # the data ended and was diagnosed to its end (graphwatch.run_ended)
 
     def as_dict(self) -> dict:
         def r(x: float) -> float | None:
@@ -164,6 +165,7 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
                 online = d.models_online
             src = graph.node(source)
             if run_ended(w.seen):
+                run.ended = True
                 break
             if stop_after_isolation_s is not None and not math.isnan(run.isolation_t) \
                     and run.final_t >= run.isolation_t + stop_after_isolation_s:

@@ -164,7 +164,7 @@ def test_replay_and_offline_diagnose_agree_with_the_live_run(live, tmp_path):
     assert abs(off["isolation_time_s"] - run.isolation_t) <= SEGMENT_S + 1e-9
     # live replay of the recorded sensor blocks through preprocessor, bank and supervisor
     rep, _ = run_live(CONFIG, replay=bag_dir, timeout_s=150)
-    assert rep.isolated_faults == ("leak_ic_engine",)
+    assert rep.ended and rep.isolated_faults == ("leak_ic_engine",)
     assert abs(rep.isolation_t - run.isolation_t) <= SEGMENT_S + 1e-9
     assert not math.isnan(rep.first_symptom_t)
     assert abs(rep.first_symptom_t - run.first_symptom_t) <= SEGMENT_S + 1e-9
@@ -216,7 +216,7 @@ def test_replay_at_rate_4_same_isolation_and_no_segment_skipped(live):
     rep, w = run_live(CONFIG, replay=bag_dir, realtime_factor=4.0, timeout_s=150)
     pipe = [st for _, arr in w.seen.diagnostics for st in arr.status
             if st.name == "fdi_supervisor: pipeline"]
-    assert rep.isolated_faults == ("leak_ic_engine",), rep.isolations
+    assert rep.ended and rep.isolated_faults == ("leak_ic_engine",), rep.isolations
     assert abs(rep.isolation_t - run.isolation_t) <= SEGMENT_S + 1e-9
     skipped = [int(v.value) for st in pipe for v in st.values if v.key == "skipped_segments"]
     assert skipped and max(skipped) == 0, [st.message for st in pipe][-3:]

@@ -154,6 +154,7 @@ def test_fault_memory_survives_a_killed_supervisor(diesel_bank, tmp_path, monkey
     run, w = run_live(CONFIG, scenario=_scenario(tmp_path, faults=True, duration=9.0),
                       during=during, timeout_s=120)
     before, after = done["before"], done["after"]
+    assert run.ended  # ended by the data, though the supervisor was killed mid-run
     assert before.status == after.status == "CONFIRMED"
     assert after.occurrences == 1 and 6.0 < after.first_t_s < 7.0
     assert not done["clear_bad"].success and "no_such" in done["clear_bad"].message

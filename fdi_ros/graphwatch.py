@@ -31,10 +31,10 @@ class Seen:
 
 def run_ended(seen: Seen) -> bool:
     """The one rule for "this run's data is fully diagnosed": the supervisor has said the end
-    of the diagnosis (it says so only once the source's data ended and the segment with the
-    last feature index is diagnosed, see :mod:`fdi_ros.nodes.startup`) and the diagnosis it
-    names has reached this watcher too (-1: the data held no segment). Plant-time facts
-    only: no wall-clock lull decides it."""
+    of the diagnosis (it says so only once the source's data ended and every segment that
+    reached it is diagnosed, see :mod:`fdi_ros.nodes.endofdata`) and the last diagnosis it
+    names has reached this watcher too (-1: none). Plant-time facts only: no wall-clock lull
+    decides it."""
     if not seen.end_of_diagnosis:
         return False
     last = seen.end_of_diagnosis[-1][1][1]

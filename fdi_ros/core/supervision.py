@@ -95,6 +95,11 @@ class StepAligner:
             raise ValueError(f"lag_s must be > 0, not {self.lag_s}")
 
     @property
+    def newest_index(self) -> int:
+        """The newest feature index seen (-1: none)."""
+        return self._newest_index
+
+    @property
     def lag(self) -> float:
         """Plant seconds between the newest features and the last step taken."""
         return max(0.0, self.newest_t - self.last_t) if math.isfinite(self.last_t) else 0.0
@@ -423,7 +428,7 @@ class SupervisorCore:
             return out
         self._keep(rv.t, "residuals", rv)
         if not self.driver.live(rv.model_id) or rv.model_id not in self.diag.models_online:
-            return out + self._steps()
+            return out  # not expected by any step now: it completes none
         if rv.model_id == self.diag.reference_id and rv.index not in self._symptoms:
             s = self.diag.symptoms_of(rv)  # at once: the symptom need not wait for the bank
             self._symptoms[rv.index] = s
@@ -519,7 +524,7 @@ class SupervisorCore:
                                       if not math.isnan(s.wall)), -math.inf)
         if now - quiet <= self.inputs.wall_timeout_s:
             return []
-        last, newest = self.end[1], self.aligner._newest_index
+        last, newest = self.end[1], self.aligner.newest_index
         if newest < last:
             self._end_why = f"features {newest + 1}..{last} never came"
         self._flush_through = last

@@ -5,8 +5,9 @@ everything before it.
 the plant time the data ended: the source's ``"end_of_data <sensor blocks sent>"`` on
 ``/fdi/end_of_data`` (:meth:`fdi_ros.nodes.startup.SourceGate.end`), the preprocessor's
 ``"end_of_features <last feature index>"`` (-1: none) once it has every block
-(:class:`EndOfFeatures`), the supervisor's ``"end_of_diagnosis <last feature index>"`` once
-that segment is diagnosed (:meth:`fdi_ros.core.supervision.SupervisorCore.end_of_features`).
+(:class:`EndOfFeatures`), the supervisor's ``"end_of_diagnosis <last diagnosed index>"`` once
+that segment is diagnosed, or features or residuals that never came are given up (named in its
+log; :meth:`fdi_ros.core.supervision.SupervisorCore.end_of_features`).
 A run has ended when the end of the diagnosis has come and the diagnosis it names has been
 seen (:func:`fdi_ros.graphwatch.run_ended`).
 """
@@ -21,6 +22,7 @@ from fdi_ros.nodes.common import LATCHED_QOS
 END_OF_DATA_TOPIC = "/fdi/end_of_data"
 END_OF_FEATURES_TOPIC = "/fdi/end_of_features"
 END_OF_DIAGNOSIS_TOPIC = "/fdi/end_of_diagnosis"
+
 
 def end_message(kind: str, t_s: float, n: int) -> Any:
     """A ``std_msgs/Header`` end event ``"<kind> <n>"`` stamped with plant time ``t_s``."""
@@ -38,6 +40,7 @@ def read_end(m: Any, kind: str) -> tuple[float, int] | None:
         return (m.stamp.sec + m.stamp.nanosec * 1e-9, int(n)) if word == kind else None
     except ValueError:
         return None
+
 
 class EndOfFeatures:
     """The preprocessor's part of the end: count the sensor blocks received and, once the

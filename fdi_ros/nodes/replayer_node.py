@@ -47,7 +47,8 @@ PARAMS = (
     Param("topics", ["/fdi/sensor_block", "/fdi/fault_truth"], "topics of the bag to publish",
           read_only=True),
     Param("publish_clock", True, "publish the bag's time on /clock", read_only=True),
-    Param("max_ahead_s", 1.0, "bag seconds the data may run ahead of the last diagnosis on "
+    Param("max_ahead_s", 1.0, "plant seconds (the blocks' stamps) the data may run ahead of "
+          "the last diagnosis on "
           "/fdi/diagnosis: a graph slower than the rate holds the replay back instead of "
           "skipping segments (0: never wait)", range=(0.0, 3600.0)),
     *SOURCE_PARAMS,

@@ -214,12 +214,13 @@ def build_bank(cfg: GraphConfig, *, progress: bool = True, seed: int = 0,
                      fault_free=cfg.resolve(DEFAULT_DRIVE), progress=progress)
         built.append(mid)
         log(f"[bank] {mid}: {time.perf_counter() - t0:.1f} s")
-    jobs = [(str(cfg.path), mid, spec, seed + 500 + i) for i, (mid, spec) in enumerate(
-        s for s in todo if s[1]["type"] != "diesel_reference")]
-    for _, hid, hspec, _ in jobs:
-        fault, size = hypothesis_fault(next(iter(cfg.entry(hid).faults)), hspec)
-        log(f"[bank] identifying fault hypothesis {hid!r} ({fault} {size:g} "
-            f"{FAULT_UNITS[fault]}) -> {hspec['hypothesis']}")
+    jobs = []
+    for i, (mid, spec) in enumerate(s for s in todo if s[1]["type"] != "diesel_reference"):
+        # the fault of this hypothesis: its bank entry's single fault (sized or not)
+        fault, size = hypothesis_fault(next(iter(cfg.entry(mid).faults)), spec)
+        log(f"[bank] identifying fault hypothesis {mid!r} ({fault} {size:g} "
+            f"{FAULT_UNITS[fault]}) -> {spec['hypothesis']}")
+        jobs.append((str(cfg.resolve(DEFAULT_IDENT)), mid, spec, fault, size, seed + 500 + i))
     # independent of each other: one process each, as many at once as there are cores
     for mid, seconds in map_processes(_build_hypothesis, jobs):
         built.append(mid)
@@ -227,25 +228,21 @@ def build_bank(cfg: GraphConfig, *, progress: bool = True, seed: int = 0,
     return built
 
 
-def _build_hypothesis(job: tuple[str, str, dict, int]) -> tuple[str, float]:
+def _build_hypothesis(job: tuple[str, str, dict, str, float, int]) -> tuple[str, float]:
     """Identify one fault hypothesis of the bank (a worker process): simulate the
     identification scenario with its fault, fit, save; returns (model id, seconds)."""
-    from fdi_ros.core.graphconfig import load_graph_config
-    from fdi_ros.plants.diesel.identify import DEFAULT_IDENT, simulate_features
+    from fdi_ros.plants.diesel.identify import simulate_features
     from fdi_ros.plants.diesel.reference import ReferenceModelSet
     from fdi_ros.plants.diesel.symptoms import identify_fault_hypothesis, load_symptom_config
 
-    config, mid, spec, seed = job
+    scenario, mid, spec, fault, size, seed = job
     t0 = time.perf_counter()
-    cfg = load_graph_config(config)
     mset = ReferenceModelSet.load(spec["path"])
     scfg = load_symptom_config(spec["path"])
     if scfg is None:
         raise ValueError(f"{spec['path']}: no thresholds for the hypothesis {mid!r}")
-    # the fault of this hypothesis: its bank entry's single fault (sized or not)
-    fault, size = hypothesis_fault(next(iter(cfg.entry(mid).faults)), spec)
     feats, _ = simulate_features(
-        cfg.resolve(DEFAULT_IDENT), seed=seed, progress=False,
+        scenario, seed=seed, progress=False,
         faults=[FaultEvent(t=5.0, fault=fault, size=size, size_unit=FAULT_UNITS[fault])])
     hyp = identify_fault_hypothesis(mset, scfg, feats, fault=fault, size=size, t_from=6.0,
                                     model_id=mid, window=HYPOTHESIS_WINDOW)

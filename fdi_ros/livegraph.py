@@ -88,19 +88,23 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
              watch_blocks: bool = False,
              log: Callable[[str], None] = lambda s: None,
              stop_after_isolation_s: float | None = None,
-             hosting: Any = None) -> tuple[LiveRun, GraphWatcher]:
+             hosting: Any = None, hold_back: bool = True) -> tuple[LiveRun, GraphWatcher]:
     """Launch (the source starts after the start-up handshake: the bank active, every reader
     matched), watch until the source's end-of-data event (or ``stop_after_isolation_s`` plant
     seconds after an isolation), stop.
 
     ``during(graph, watcher, run)`` is called on every watch iteration (tests kill nodes
     from it). ``hosting``: how the model nodes are hosted (:class:`fdi_ros.launcher.Graph`).
+    ``hold_back``: the source waits for a diagnosis more than 1 s of plant time behind (its
+    ``max_ahead_s``); False: the source keeps its pace whatever the graph does (throughput
+    benchmarks, where falling behind must show).
     Returns the run summary and the (closed) watcher with everything it saw.
     """
     # the source starts after the start-up handshake (see Graph), so no start delay
+    ahead = 1.0 if hold_back else 0.0
     over: dict[str, dict] = {"fdi_plant": {"realtime_factor": realtime_factor,
-                                           "start_delay_s": 0.0},
-                             "fdi_replayer": {"rate": realtime_factor}}
+                                           "start_delay_s": 0.0, "max_ahead_s": ahead},
+                             "fdi_replayer": {"rate": realtime_factor, "max_ahead_s": ahead}}
     if scenario is not None:
         over["fdi_plant"]["scenario"] = str(Path(scenario).resolve())
     graph = Graph(config, overrides=over, record=record, replay=replay, echo=echo,

@@ -229,6 +229,38 @@ def test_core_external_deactivate_never_isolates_and_memory_reloads(tmp_path):
     assert again.memory.records["a"].freeze_frame["features"] == {"y": 1.0}
 
 
+def test_model_confirmed_active_mid_run_is_waited_for_only_from_then_on(tmp_path):
+    """A model brought on line while features are in flight computes only what it receives
+    once active: the steps before its activation are taken without it (not held until they
+    are skipped), every later step waits for it. Random activation points and arrivals."""
+    import random
+
+    from fdi_ros.core.bankdriver import ACTIVE, INACTIVE
+
+    rng = random.Random()
+    for _ in range(20):
+        core = _core(tmp_path)
+        core.driver.on_transition_event("b", ACTIVE, INACTIVE, 0.0)
+        wall, n_before = 0.0, rng.randint(3, 40)
+        for k in range(n_before):  # b off line: its residuals neither come nor are waited for
+            wall += 0.015
+            core.features(_fv(k, 0.0), wall)
+        behind = rng.randint(0, n_before - 1)  # the other models lag by this many segments
+        for k in range(n_before - behind):
+            _residuals(core, k, 0.0, wall, skip=("b",))
+        core.driver.on_transition_event("b", INACTIVE, ACTIVE, wall)  # confirmed active
+        for k in range(n_before - behind, n_before):  # the features b never saw
+            _residuals(core, k, 0.0, wall, skip=("b",))
+        assert core.aligner.next_index == n_before and core.aligner.skipped == 0
+        k = n_before
+        core.features(_fv(k, 0.0), wall)
+        _residuals(core, k, 0.0, wall, skip=("b",))
+        assert core.aligner.next_index == k, "a step after the activation waits for b"
+        _residuals(core, k, 0.0, wall, skip=("nominal", "a"))
+        assert core.aligner.next_index == k + 1 and core.aligner.skipped == 0
+        assert core.last.state == "no_fault" and not core.away
+
+
 def test_core_live_settings_validated(tmp_path):
     core = _core(tmp_path)
     core.set("t0_s", 0.6)

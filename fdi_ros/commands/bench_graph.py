@@ -123,7 +123,7 @@ def measure(config: Path, scenario: Path, sc: Any, hosting: dict) -> dict:
     usage = _Usage()
     run_, w = run_live(config, scenario=scenario, realtime_factor=1.0,
                        timeout_s=sc.duration_s + 90, during=usage, watch_blocks=True,
-                       hosting=hosting)
+                       hosting=hosting, hold_back=False)
     blocks = w.seen.blocks  # (wall arrival, plant time of the block's last sample)
     b_t = [t for _, t in blocks]
     b_wall = [wall for wall, _ in blocks]

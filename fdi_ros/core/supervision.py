@@ -124,11 +124,15 @@ class StepAligner:
         self._pending.setdefault(index, {})[model_id] = value
         return True
 
-    def ready(self, expected: Iterable[str], through: int | None = None) -> list[Step]:
-        """Steps that can be taken now, in index order; ``through``: take every step up to
-        this index now, complete or not (the end of the data: no later features will come
-        to push the incomplete ones out by ``lag_s``)."""
-        exp = set(expected)
+    def ready(self, expected: Mapping[str, int] | Iterable[str],
+              through: int | None = None) -> list[Step]:
+        """Steps that can be taken now, in index order. ``expected``: the models whose
+        residuals complete a step, each with the first index it is expected at (a model
+        brought on line answers only the features after its activation; a plain iterable:
+        every step); ``through``: take every step up to this index now, complete or not (the
+        end of the data: no later features will come to push the incomplete ones out by
+        ``lag_s``)."""
+        start = dict(expected) if isinstance(expected, Mapping) else dict.fromkeys(expected, -1)
         out = []
         last = -1 if through is None else through
         while self.next_index is not None:
@@ -139,7 +143,7 @@ class StepAligner:
                     continue
                 break
             got = self._pending.get(k, {})
-            complete = exp <= set(got)
+            complete = all(m in got for m, k0 in start.items() if k0 <= k)
             t = self._feature_t[k]
             if not complete and self.newest_t - t < self.lag_s and k > last:
                 break
@@ -338,6 +342,7 @@ class SupervisorCore:
         self._symptoms: dict[int, Any] = {}
         self._stale: dict[str, str] = {}
         self.away: set[str] = set()  # models the steps do not wait for (see _steps)
+        self._live_from: dict[str, int] = {}  # live model -> first feature index it answers
         # end of the data: (plant time, last feature index) from the preprocessor, the wall
         # time it came, and whether the end of the diagnosis was said (see end_of_features)
         self.end: tuple[float, int] | None = None
@@ -393,6 +398,7 @@ class SupervisorCore:
             # features after the end said: a new source's data (a second replay into a
             # running graph), whose own end will be said again
             self.end, self._end_said, self._flush_through, self._end_why = None, False, None, ""
+        self._track_live()  # a model confirmed active before these features answers them
         self.aligner.add_features(fv.index, fv.t_end)
         self._features[fv.index] = fv.as_dict()
         self._keep(fv.t_end, "features", fv)
@@ -435,9 +441,20 @@ class SupervisorCore:
             out.append(Publish("symptoms", (rv.index, rv.t, s)))
         return out + self._steps()
 
-    def _expected(self) -> list[str]:
-        return [m for m in self.diag.models_online if self.driver.live(m)
-                and m not in self.away]
+    def _track_live(self) -> None:
+        """A model confirmed active is expected from the features after its activation: a
+        model brought on line (a bank switch, a respawn, an external change undone) computes
+        only what it receives once active, so the steps before must not wait for it."""
+        live = {m for m in self.diag.models_online if self.driver.live(m)}
+        for m in set(self._live_from) - live:
+            del self._live_from[m]
+        for m in live - set(self._live_from):
+            self._live_from[m] = self.aligner.newest_index + 1
+
+    def _expected(self) -> dict[str, int]:
+        """The models the steps wait for, each with the first feature index it answers."""
+        self._track_live()
+        return {m: k for m, k in self._live_from.items() if m not in self.away}
 
     def _steps(self) -> list[object]:
         from dataclasses import replace
@@ -458,7 +475,8 @@ class SupervisorCore:
             st.residuals = {m: r for m, r in st.residuals.items() if m in expected}
             skip = not st.complete
             if skip:
-                lacking = sorted(set(expected) - set(st.residuals) - self.away)
+                lacking = sorted(m for m, k0 in expected.items() if k0 <= st.index
+                                 and m not in st.residuals)
                 self.away.update(lacking)
                 out += [Note("warn", m, f"model {m}: no residuals for segment {st.index} "
                              f"after {self.aligner.lag_s:g} s of plant time; segment skipped, "

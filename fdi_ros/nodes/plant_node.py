@@ -8,7 +8,9 @@ applies from that moment on, see :class:`fdi_ros.core.pacing.Pacer`); every bloc
 ``use_sim_time``; the plant itself keeps wall time). Every message is stamped in plant time.
 Plant time starts at the source gate (:class:`fdi_ros.nodes.startup.SourceGate`: matched
 readers, the supervisor's ``/fdi/ready``); at the scenario's end the plant publishes the
-end-of-data event on ``/fdi/end_of_data``.
+end-of-data event on ``/fdi/end_of_data``. A simulated plant waits while its data is
+``max_ahead_s`` ahead of the last diagnosis (:class:`fdi_ros.nodes.startup.DiagnosisHold`; 0
+for a plant that keeps real time whatever the graph does, as a real engine would).
 
 Faults are injected at run time on ``/fdi/fault_inject`` (reliable, volatile: default and
 transient-local publishers both match) and through the service ``/fdi/inject_fault``
@@ -40,7 +42,7 @@ from fdi_ros.nodes.common import (
     follow_rate,
     run_node,
 )
-from fdi_ros.nodes.startup import SOURCE_PARAMS, SourceGate
+from fdi_ros.nodes.startup import SOURCE_PARAMS, DiagnosisHold, SourceGate
 from fdi_ros.plants import fault_rules, make_runner
 
 
@@ -85,7 +87,7 @@ class PlantNode(Node):
         self.create_service(InjectFault, "/fdi/inject_fault", self._on_inject_service)
         self._pacer = Pacer(float(p("realtime_factor").value))
         follow_rate(self, self._pacer, "realtime_factor", lambda: self.runner.t, "t =")
-        self._gate = SourceGate(self, self._pub)
+        self._gate, self._hold = SourceGate(self, self._pub), DiagnosisHold(self)
         self._finished, self._sent = False, 0
         self.create_timer(0.01, self._tick)
         self.create_timer(1.0, self._publish_diagnostics)
@@ -128,7 +130,8 @@ class PlantNode(Node):
                 self._gate.end(round(self.runner.t * 1e9), self._sent)
                 self.get_logger().info(f"scenario finished at t = {self.runner.t:.3f} s")
                 return
-            if self.runner.t >= target:
+            if self.runner.t >= target or self._hold.held(self.runner.t, self._pacer,
+                                                           self.runner.t, "realtime_factor"):
                 break
             block = self.runner.next_block()
             for ev in self.runner.pop_truth():

@@ -25,7 +25,7 @@ from rclpy.node import Node
 
 from fdi_ros import bag as bagio
 from fdi_ros import msgs
-from fdi_ros.core.pacing import HoldBack, Pacer
+from fdi_ros.core.pacing import Pacer
 from fdi_ros.nodes.common import (
     DATA_QOS,
     LATCHED_QOS,
@@ -37,7 +37,7 @@ from fdi_ros.nodes.common import (
     run_node,
 )
 from fdi_ros.nodes.recorder_node import _msg_class
-from fdi_ros.nodes.startup import SOURCE_PARAMS, SourceGate
+from fdi_ros.nodes.startup import SOURCE_PARAMS, DiagnosisHold, SourceGate
 
 PARAMS = (
     Param("bag", "", "bag directory to replay (rosbag2, MCAP); required", read_only=True,
@@ -47,10 +47,6 @@ PARAMS = (
     Param("topics", ["/fdi/sensor_block", "/fdi/fault_truth"], "topics of the bag to publish",
           read_only=True),
     Param("publish_clock", True, "publish the bag's time on /clock", read_only=True),
-    Param("max_ahead_s", 1.0, "plant seconds (the blocks' stamps) the data may run ahead of "
-          "the last diagnosis on "
-          "/fdi/diagnosis: a graph slower than the rate holds the replay back instead of "
-          "skipping segments (0: never wait)", range=(0.0, 3600.0)),
     *SOURCE_PARAMS,
 )
 
@@ -78,27 +74,11 @@ class ReplayerNode(Node):
         follow_rate(self, self._pacer, "rate", lambda: self._last_ns * 1e-9, "bag time")
         self._gate = SourceGate(self, self._pubs.get("/fdi/sensor_block"))
         self.count = self.blocks = 0
-        from fdi_msgs.msg import Diagnosis
-
-        self._hold = HoldBack()
-        self._diag = self.create_subscription(Diagnosis, "/fdi/diagnosis", lambda m: (
-            self._hold.diagnosis(float(m.t_s), time.monotonic())),  # type: ignore[attr-defined]
-            DATA_QOS)
+        self._hold = DiagnosisHold(self)
         self.done = False
         self.create_timer(0.005, self._tick)
         self.get_logger().info(f"replaying {path} ({', '.join(self._pubs)}) at rate "
                                f"{self._pacer.rate or 'max'}")
-
-    def _held(self, t: float) -> bool:  # t: the block's plant time (its header stamp)
-        """See :class:`fdi_ros.core.pacing.HoldBack`."""
-        self._hold.ahead_s = float(self.get_parameter("max_ahead_s").value)
-        if not self._hold.hold(t, time.monotonic(), self._diag.get_publisher_count() > 0):
-            return False
-        if self._hold.held == 1:
-            self.get_logger().warn(f"the graph is slower than rate {self._pacer.rate or 'max'}: "
-                                   f"the replay waits for the diagnosis ({self._hold.ahead_s:g} "
-                                   "s ahead)")
-        return True
 
     def _tick(self) -> None:
         if self.done or not self._gate.check(time.monotonic(), self._pacer, self._t0_s):
@@ -109,12 +89,13 @@ class ReplayerNode(Node):
                 if self._next is None:
                     self.done = True
                     self._gate.end(self._last_ns, self.blocks)
-                    n = self._hold.held
+                    n = self._hold.core.held
                     self.get_logger().info(f"replay finished: {self.count} messages" + (
                         f" (held back for the diagnosis {n} times)" if n else ""))
                     return
             topic, _typ, t_ns, data = self._next
-            if topic == "/fdi/sensor_block" and self._held(msgs.raw_header_stamp(bytes(data))):
+            if topic == "/fdi/sensor_block" and self._hold.held(
+                    msgs.raw_header_stamp(bytes(data)), self._pacer, t_ns * 1e-9, "rate"):
                 return
             if self._pacer.rate > 0:
                 if t_ns * 1e-9 > self._pacer.target(time.monotonic()):

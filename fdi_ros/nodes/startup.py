@@ -8,17 +8,22 @@ is active and every reader of the features, residuals and diagnoses is there
 (:meth:`fdi_ros.core.supervision.SupervisorCore.waiting_for`). Otherwise the first segments
 would miss some reader, the filters' warm-up would end elsewhere than offline and a live run
 would differ from ``fdi-ros diagnose``. At its end a source publishes the end-of-data event.
+While it runs, a source waits whenever its data is ``max_ahead_s`` of plant time ahead of the
+last diagnosis (:class:`DiagnosisHold`): a graph slower than the data holds the source back
+instead of skipping segments, so a busy machine changes the pace, not the diagnosis.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Mapping
 from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 
-from fdi_ros.nodes.common import LATCHED_QOS, Param
+from fdi_ros.core.pacing import HoldBack
+from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, Param
 from fdi_ros.nodes.endofdata import END_OF_DATA_TOPIC, end_message
 
 # The supervisor's "the graph is ready for data" signal: std_msgs/msg/Header, transient-local
@@ -32,6 +37,10 @@ SOURCE_PARAMS = (
           "every reader that matters is matched and the bank is active", read_only=True),
     Param("start_delay_s", 0.0, "wall seconds to wait, once the above hold, before the data "
           "starts", read_only=True, range=(0.0, 3600.0)),
+    Param("max_ahead_s", 1.0, "plant seconds (the blocks' stamps) the data may run ahead of "
+          "the last diagnosis on /fdi/diagnosis: a graph slower than the data holds the source "
+          "back instead of skipping segments (0: never wait, a source that keeps real time "
+          "whatever the graph does)", range=(0.0, 3600.0)),
 )
 
 
@@ -80,6 +89,33 @@ class SourceGate:
         """The end-of-data event: ``stamp`` = time of the last data, ``frame_id`` =
         ``"end_of_data <sensor blocks sent>"``."""
         self._end.publish(end_message("end_of_data", t_ns * 1e-9, blocks))
+
+
+class DiagnosisHold:
+    """The source side of :class:`fdi_ros.core.pacing.HoldBack`: follows ``/fdi/diagnosis`` and
+    the source's ``max_ahead_s`` (changeable on line); :meth:`held` says whether the data of
+    plant time ``t`` must wait. While it waits the source's pacer is anchored at ``anchor``
+    (the waiting data's time on the pacer's clock), so once released the data goes on at its
+    rate instead of racing to catch up."""
+
+    def __init__(self, node: Any) -> None:
+        from fdi_msgs.msg import Diagnosis
+
+        self._node, self.core = node, HoldBack()
+        self._sub = node.create_subscription(Diagnosis, "/fdi/diagnosis", lambda m: (
+            self.core.diagnosis(float(m.t_s), time.monotonic())), DATA_QOS)
+
+    def held(self, t: float, pacer: Any, anchor: float, rate_name: str) -> bool:
+        self.core.ahead_s = float(self._node.get_parameter("max_ahead_s").value)
+        now = time.monotonic()
+        if not self.core.hold(t, now, self._sub.get_publisher_count() > 0):
+            return False
+        pacer.start(now, anchor)
+        if self.core.held == 1:
+            self._node.get_logger().warn(
+                f"the graph is slower than {rate_name} {pacer.rate or 'max'}: the data waits "
+                f"for the diagnosis ({self.core.ahead_s:g} s ahead)")
+        return True
 
 
 def declare_table(node: Any, table: Mapping[str, tuple]) -> dict[str, Any]:

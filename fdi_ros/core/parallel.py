@@ -11,7 +11,8 @@ may use, or ``$FDI_ROS_WORKERS`` (1: in this process, no pool).
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -81,3 +82,44 @@ def map_processes(fn: Callable[[T], R], items: Iterable[T], *, workers: int | No
             if progress is not None:
                 progress(k + 1, len(todo))
     return [results[i] for i in range(len(todo))]
+
+
+class _Done:
+    """A finished piece of work, answering like a future (the one-worker case)."""
+
+    def __init__(self, value: Any) -> None:
+        self._value = value
+
+    def result(self) -> Any:
+        return self._value
+
+
+class Pool:
+    """``submit(fn, x)`` -> a future (``.result()``); work that depends on other work is
+    submitted once the futures it needs have their results. One worker: run at once, here."""
+
+    def __init__(self, executor: Any) -> None:
+        self._executor = executor
+
+    def submit(self, fn: Callable[[T], R], item: T) -> Any:
+        if self._executor is None:
+            return _Done(fn(item))
+        return self._executor.submit(fn, item)
+
+
+@contextmanager
+def process_pool(workers: int | None = None, method: str = "spawn") -> Iterator[Pool]:
+    """A pool of ``workers`` processes (as :func:`map_processes`) for pieces of work with
+    dependencies between them, e.g. simulations that several fits need."""
+    n = default_workers() if workers is None else int(workers)
+    if n < 1:
+        raise ValueError(f"workers must be >= 1, not {workers}")
+    if n == 1:
+        yield Pool(None)
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=n, mp_context=mp.get_context(method),
+                             initializer=single_threaded_numerics) as ex:
+        yield Pool(ex)

@@ -16,6 +16,7 @@ from pathlib import Path
 DEFAULT_IDENT = "config/scenarios/diesel_ident.yaml"
 DEFAULT_DRIVE = "config/scenarios/diesel_drive.yaml"
 CACHE_DIR = Path("build/cache/features")
+THRESHOLD_SEED = 101  # noise seed of the fault-free drive the thresholds are calibrated on
 
 
 def _blocks_from_csv(path: Path, mapping):
@@ -148,8 +149,8 @@ def calibrate_from_features(mset, feats, **kw):
 
 
 def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
-                 threshold_seed: int = 101, mapping=None, config=None, progress: bool = True,
-                 figures=None):
+                 threshold_seed: int = THRESHOLD_SEED, mapping=None, config=None,
+                 progress: bool = True, figures=None):
     """Identify, save, calibrate the fault-free thresholds; returns (result, symptom config or
     None, report dict)."""
     from fdi_ros.plants.diesel.reference import (

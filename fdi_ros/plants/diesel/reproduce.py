@@ -158,7 +158,7 @@ def _load_or_build(args, progress: bool):
         if cfg is not None:
             return ReferenceModelSet.load(d), cfg, None
     res, cfg, report = build_models(DEFAULT_IDENT, out=d, seed=0, fault_free=DEFAULT_DRIVE,
-                                    threshold_seed=101, progress=progress)
+                                    progress=progress)
     return res.models, cfg, report
 
 

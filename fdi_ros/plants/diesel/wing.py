@@ -199,58 +199,106 @@ def _missing(cfg: GraphConfig) -> list[tuple[str, dict]]:
 
 def build_bank(cfg: GraphConfig, *, progress: bool = True, seed: int = 0,
                log: Callable[[str], None] = print) -> list[str]:
-    """Identify every missing reference / hypothesis model of the bank; returns the ids built."""
+    """Identify every missing reference / hypothesis model of the bank; returns the ids built.
+
+    The simulations are most of the work and need no model: the reference's identification
+    cycle and fault-free drive and each hypothesis' faulty identification cycle all start at
+    once on every core; the reference is identified here as soon as its two are done (beside
+    the hypotheses' simulations still running), then each hypothesis is fitted on it.
+    """
     todo = _missing(cfg)
     if not todo:
         return []
-    from fdi_ros.core.parallel import map_processes
-    from fdi_ros.plants.diesel.identify import DEFAULT_DRIVE, DEFAULT_IDENT, build_models
+    from fdi_ros.core.parallel import process_pool
+    from fdi_ros.plants.diesel.identify import (
+        DEFAULT_DRIVE,
+        DEFAULT_IDENT,
+        THRESHOLD_SEED,
+        build_models,
+    )
 
+    t0 = time.perf_counter()
     built = []
-    for mid, spec in (s for s in todo if s[1]["type"] == "diesel_reference"):
-        t0 = time.perf_counter()
-        log(f"[bank] identifying the reference models {mid!r} -> {spec['path']}")
-        build_models(cfg.resolve(DEFAULT_IDENT), out=spec["path"], seed=seed,
-                     fault_free=cfg.resolve(DEFAULT_DRIVE), progress=progress)
-        built.append(mid)
-        log(f"[bank] {mid}: {time.perf_counter() - t0:.1f} s")
+    ident, drive = str(cfg.resolve(DEFAULT_IDENT)), str(cfg.resolve(DEFAULT_DRIVE))
+    refs = [s for s in todo if s[1]["type"] == "diesel_reference"]
     jobs = []
     for i, (mid, spec) in enumerate(s for s in todo if s[1]["type"] != "diesel_reference"):
         # the fault of this hypothesis: its bank entry's single fault (sized or not)
         fault, size = hypothesis_fault(next(iter(cfg.entry(mid).faults)), spec)
         log(f"[bank] identifying fault hypothesis {mid!r} ({fault} {size:g} "
             f"{FAULT_UNITS[fault]}) -> {spec['hypothesis']}")
-        jobs.append((str(cfg.resolve(DEFAULT_IDENT)), mid, spec, fault, size, seed + 500 + i))
-    # independent of each other: one process each, as many at once as there are cores
-    for mid, seconds in map_processes(_build_hypothesis, jobs):
-        built.append(mid)
-        log(f"[bank] {mid}: {seconds:.1f} s")
+        jobs.append((ident, mid, spec, fault, size, seed + 500 + i))
+    with process_pool() as pool:
+        # the reference's data first (cached in build/), then the hypotheses' simulations
+        ref_data = [pool.submit(_simulate_reference, (ident, seed)),
+                    pool.submit(_simulate_reference, (drive, THRESHOLD_SEED))] if refs else []
+        sims = [pool.submit(_simulate_hypothesis, job) for job in jobs]
+        for f in ref_data:
+            f.result()
+        for mid, spec in refs:
+            log(f"[bank] identifying the reference models {mid!r} -> {spec['path']}")
+            build_models(ident, out=spec["path"], seed=seed, fault_free=drive,
+                         threshold_seed=THRESHOLD_SEED, progress=progress)
+            built.append(mid)
+            log(f"[bank] {mid}: {time.perf_counter() - t0:.1f} s")
+        fits = [pool.submit(_fit_hypothesis, (job, f.result())) for job, f in zip(jobs, sims)]
+        for f in fits:
+            mid, seconds = f.result()
+            built.append(mid)
+            log(f"[bank] {mid}: {seconds:.1f} s")
     return built
 
 
-def _build_hypothesis(job: tuple[str, str, dict, str, float, int]) -> tuple[str, float]:
-    """Identify one fault hypothesis of the bank (a worker process): simulate the
-    identification scenario with its fault, fit, save; returns (model id, seconds)."""
-    from fdi_ros.plants.diesel.identify import simulate_features
+def _simulate_reference(job: tuple[str, int]) -> str:
+    """Simulate one scenario of the reference identification into the feature cache (a
+    worker process); build_models then finds it there."""
+    from fdi_ros.plants.diesel.identify import load_features
+
+    scenario, seed = job
+    load_features(scenario, seed=seed)
+    return scenario
+
+
+def _simulate_hypothesis(job: tuple[str, str, dict, str, float, int]) -> tuple[str, float]:
+    """Simulate the identification cycle with one hypothesis' fault (a worker process) into a
+    feature file beside its model; returns (path, seconds)."""
+    from fdi_ros.plants.diesel.identify import _write_cache, simulate_features
+
+    scenario, mid, spec, fault, size, seed = job
+    t0 = time.perf_counter()
+    feats, _ = simulate_features(
+        scenario, seed=seed, progress=False,
+        faults=[FaultEvent(t=5.0, fault=fault, size=size, size_unit=FAULT_UNITS[fault])])
+    path = Path(spec["hypothesis"]) / "identification_features.npz"
+    _write_cache(path, feats)
+    if not path.exists():
+        raise ValueError(f"{mid}: the simulation gave no uniform feature vectors to identify on")
+    return str(path), time.perf_counter() - t0
+
+
+def _fit_hypothesis(arg: tuple[tuple[str, str, dict, str, float, int], tuple[str, float]]
+                    ) -> tuple[str, float]:
+    """Identify one fault hypothesis of the bank on its simulated features and the reference
+    (a worker process), save; returns (model id, seconds of simulation and fit)."""
+    from fdi_ros.plants.diesel.identify import _read_cache
     from fdi_ros.plants.diesel.reference import ReferenceModelSet
     from fdi_ros.plants.diesel.symptoms import identify_fault_hypothesis, load_symptom_config
 
-    scenario, mid, spec, fault, size, seed = job
+    (_scenario, mid, spec, fault, size, seed), (path, sim_s) = arg
     t0 = time.perf_counter()
     mset = ReferenceModelSet.load(spec["path"])
     scfg = load_symptom_config(spec["path"])
     if scfg is None:
         raise ValueError(f"{spec['path']}: no thresholds for the hypothesis {mid!r}")
-    feats, _ = simulate_features(
-        scenario, seed=seed, progress=False,
-        faults=[FaultEvent(t=5.0, fault=fault, size=size, size_unit=FAULT_UNITS[fault])])
+    feats = _read_cache(Path(path))
+    Path(path).unlink()
     hyp = identify_fault_hypothesis(mset, scfg, feats, fault=fault, size=size, t_from=6.0,
                                     model_id=mid, window=HYPOTHESIS_WINDOW)
     hyp.save(spec["hypothesis"])
     (Path(spec["hypothesis"]) / BUILD_INFO).write_text(json.dumps(
         {"reference": reference_fingerprint(spec["path"]), "fault": fault, "size": size,
          "seed": seed, "window": HYPOTHESIS_WINDOW}))
-    return mid, time.perf_counter() - t0
+    return mid, sim_s + time.perf_counter() - t0
 
 
 WING = Wing(

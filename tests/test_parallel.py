@@ -41,3 +41,26 @@ def test_bad_settings_refused(monkeypatch):
         monkeypatch.setenv("FDI_ROS_WORKERS", bad)
         with pytest.raises(ValueError, match="FDI_ROS_WORKERS"):
             default_workers()
+
+
+def _combine(x: tuple[tuple[int, float], tuple[int, float]]) -> float:
+    (_, a), (_, b) = x
+    return a - 2.0 * b
+
+
+def test_pool_with_dependent_work_equals_the_serial_chain():
+    """process_pool: work submitted on the results of other work gives what the serial chain
+    gives, with two workers and with one (run in this process)."""
+    from fdi_ros.core.parallel import process_pool
+
+    rng = random.Random()
+    items = [(i, rng.uniform(-5, 5)) for i in range(rng.randint(3, 8))]
+    serial = [_combine((_work(x), _work(items[0]))) for x in items]
+    for workers in (2, 1):
+        with process_pool(workers) as pool:
+            first = [pool.submit(_work, x) for x in items]
+            base = first[0].result()
+            got = [pool.submit(_combine, (f.result(), base)).result() for f in first]
+        assert got == serial
+    with pytest.raises(ValueError, match="workers"), process_pool(0):
+        pass

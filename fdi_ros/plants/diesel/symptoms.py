@@ -35,6 +35,7 @@ import numpy as np
 from fdi_ros.core.fst import LEVEL_CODES, FaultSymptomTable, signature_string
 from fdi_ros.core.fst import isolate as _isolate
 from fdi_ros.core.fst import load_fault_symptom_tables as _load_tables
+from fdi_ros.core.sliding import SlidingRange
 from fdi_ros.core.symptoms import (
     SymptomConfig,
     SymptomGenerator,
@@ -224,7 +225,8 @@ class QuasiStationarity:
         self._lag = config.rate_lag if config is not None else 2
         self._hist: deque[tuple[float, float, float]] = deque(maxlen=self._lag + 1)
         self._inputs: deque[tuple[float, float, float]] = deque()  # (t, n, fuel), settle_s
-        self._acts: deque[tuple[float, dict[str, float]]] = deque()  # ACTUATOR_SETTLE_S
+        # actuator commands' range over ACTUATOR_SETTLE_S (core/sliding: O(1) per segment)
+        self._acts = {k: SlidingRange(ACTUATOR_SETTLE_S) for k in GATED_ACTUATORS}
 
     @property
     def active(self) -> bool:
@@ -234,7 +236,8 @@ class QuasiStationarity:
     def reset(self) -> None:
         self._hist.clear()
         self._inputs.clear()
-        self._acts.clear()
+        for r in self._acts.values():
+            r.clear()
 
     def rates(self, fv: FeatureVector) -> tuple[float, float]:
         """Push one feature vector; (dn/dt [rpm/s], dp2/dt [Pa/s]) or NaNs while settling."""
@@ -249,12 +252,11 @@ class QuasiStationarity:
         self._hist.append((t, n, p2))
         fuel = fv.get("fuel") if "fuel" in fv.names else float("nan")
         self._inputs.append((t, n, fuel))
-        self._acts.append((t, {k: fv.get(k) for k in GATED_ACTUATORS if k in fv.names}))
+        for k, r in self._acts.items():
+            r.push(t, fv.get(k) if k in fv.names else math.nan)
         if self.config is not None:
             while self._inputs and self._inputs[0][0] < t - self.config.settle_s:
                 self._inputs.popleft()
-        while self._acts and self._acts[0][0] < t - ACTUATOR_SETTLE_S:
-            self._acts.popleft()
         if len(self._hist) < self._lag + 1:
             return float("nan"), float("nan")
         t0, n0, p0 = self._hist[0]
@@ -279,12 +281,8 @@ class QuasiStationarity:
 
     def actuators_moved(self) -> str:
         """The "not valid" status if an actuator command moved within ACTUATOR_SETTLE_S."""
-        moved = {}
-        for k in GATED_ACTUATORS:
-            v = [a[k] for _, a in self._acts if k in a and np.isfinite(a[k])]
-            if v:
-                moved[k] = float(max(v) - min(v))
-        return actuator_status(moved)
+        ranges = {k: r.range() for k, r in self._acts.items()}
+        return actuator_status({k: float(v) for k, v in ranges.items() if v is not None})
 
     def apply(self, fv: FeatureVector, r: np.ndarray, valid: bool,
               status: str) -> tuple[np.ndarray, bool, str]:

@@ -1,0 +1,51 @@
+"""Range (max - min) of a signal over a sliding window of time, in O(1) amortised per sample.
+
+Two monotonic queues: the maxima candidates (decreasing) and the minima candidates
+(increasing); a sample leaves when it is older than the window or a newer sample dominates
+it. Used per segment and per bank model on line, where a scan of the window's samples per
+segment made the gates the most expensive part of a residual.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+
+class SlidingRange:
+    """``max - min`` of the finite values pushed within the last ``window`` (time units of
+    the stamps; a sample of time ``t0`` stays while ``t0 >= t - window``)."""
+
+    def __init__(self, window: float) -> None:
+        self.window = float(window)
+        self._hi: deque[tuple[float, float]] = deque()
+        self._lo: deque[tuple[float, float]] = deque()
+
+    def clear(self) -> None:
+        self._hi.clear()
+        self._lo.clear()
+
+    def push(self, t: float, value: float) -> None:
+        """A sample at time ``t`` (non-decreasing); non-finite values are not kept, but the
+        window still moves to ``t``."""
+        if math.isfinite(value):
+            while self._hi and self._hi[-1][1] <= value:
+                self._hi.pop()
+            self._hi.append((t, value))
+            while self._lo and self._lo[-1][1] >= value:
+                self._lo.pop()
+            self._lo.append((t, value))
+        self.evict(t)
+
+    def evict(self, t: float) -> None:
+        """Drop the samples older than ``t - window``."""
+        edge = t - self.window
+        for q in (self._hi, self._lo):
+            while q and q[0][0] < edge:
+                q.popleft()
+
+    def range(self) -> float | None:
+        """max - min over the window; None without a finite sample in it."""
+        if not self._hi:
+            return None
+        return self._hi[0][1] - self._lo[0][1]

@@ -2,6 +2,11 @@
 
 Set before anything imports rclpy so that every node started by a test, in this process or in
 a child process, discovers only peers on 127.0.0.0/8 and in its own domain.
+
+The model banks (diesel reference and hypotheses, turbofan TS models) are identified by a
+background process started once the tests are collected, while the test modules that need no
+bank run first; a bank fixture then waits on the bank's lock (``fdi_ros.plants.ensure_bank``)
+and finds it built. The tests are the same whatever the order; only the wall time changes.
 """
 
 from __future__ import annotations
@@ -16,11 +21,47 @@ os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("FDI_ROS_STATE_DIR", __import__("tempfile").mkdtemp(prefix="fdi_state_"))
 
 
+import subprocess  # noqa: E402
+import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+# bank fixture -> the configuration whose bank it needs
+BANKS = {"diesel_bank": "config/diesel.yaml", "diesel_reference_dir": "config/diesel.yaml",
+         "turbofan_bank": "config/turbofan.yaml"}
+_BUILD = "import sys; from fdi_ros.plants import ensure_bank\n" \
+         "for c in sys.argv[1:]: ensure_bank(c, progress=False)"
+_background: list[subprocess.Popen] = []
+
+
+@pytest.hookimpl(trylast=True)  # after the deselection by -m / -k
+def pytest_collection_modifyitems(session, config, items):
+    """Modules that need no bank first (kept whole: module fixtures are set up once), and the
+    banks the others need identified meanwhile, in one background process, in order of use."""
+    needs: dict[str, list[str]] = {}
+    for it in items:
+        needs.setdefault(it.module.__name__, [])
+        needs[it.module.__name__] += [BANKS[f] for f in it.fixturenames if f in BANKS]
+    items.sort(key=lambda it: bool(needs[it.module.__name__]))
+    order = list(dict.fromkeys(c for it in items for c in needs[it.module.__name__]))
+    if order and not config.getoption("collectonly"):
+        log = (ROOT / "build" / "bank_background.log")
+        log.parent.mkdir(parents=True, exist_ok=True)
+        with log.open("w") as fh:
+            _background.append(subprocess.Popen([sys.executable, "-c", _BUILD, *order],
+                                                cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT))
+
+
+def pytest_sessionfinish(session, exitstatus):
+    for proc in _background:
+        if proc.poll() is None:  # the session ended early (deselected, interrupted)
+            proc.terminate()
+            proc.wait(30)
+        elif proc.returncode:
+            print(f"\nbackground bank identification failed (rc {proc.returncode}); its log: "
+                  f"{ROOT / 'build' / 'bank_background.log'}", file=sys.stderr)
 
 
 @pytest.fixture(scope="session")
@@ -30,6 +71,16 @@ def diesel_bank() -> Path:
     from fdi_ros.plants import ensure_bank
 
     config = ROOT / "config" / "diesel.yaml"
+    ensure_bank(config, progress=False, log=lambda s: None)
+    return config
+
+
+@pytest.fixture(scope="session")
+def turbofan_bank() -> Path:
+    """The turbofan graph's TS node models, trained once (as `fdi-ros build-bank`)."""
+    from fdi_ros.plants import ensure_bank
+
+    config = ROOT / "config" / "turbofan.yaml"
     ensure_bank(config, progress=False, log=lambda s: None)
     return config
 

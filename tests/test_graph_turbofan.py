@@ -19,10 +19,7 @@ SCENARIO = ROOT / "config" / "turbofan_hub_small_to_large.yaml"
 
 
 @pytest.fixture(scope="module")
-def live():
-    from fdi_ros.plants import ensure_bank
-
-    ensure_bank(CONFIG, progress=False, log=lambda s: None)  # trains the TS models if missing
+def live(turbofan_bank):
     lines: list[str] = []
     run, w = run_live(CONFIG, scenario=SCENARIO, timeout_s=150, log=lines.append)
     return run, w, lines

@@ -197,14 +197,21 @@ def load_residual_model(path_or_spec: Any, *, model_id: str) -> residual_models.
 def ensure_bank(config: str | Path | GraphConfig, *, progress: bool = True, seed: int = 0,
                 log: Log = print) -> list[str]:
     """Identify every missing model of the configuration's bank (through its plant's wing);
-    returns the ids built."""
+    returns the ids built. One build per plant at a time: a second caller (another command,
+    a test process) waits on a lock in build/ and then finds the bank built."""
+    import fcntl
+
     from fdi_ros.core.graphconfig import GraphConfig, load_graph_config
 
     cfg = config if isinstance(config, GraphConfig) else load_graph_config(config)
     wing = get_wing(cfg.plant)
     if wing.build_bank is None:
         return []
-    return wing.build_bank(cfg, progress=progress, seed=seed, log=log)
+    lock = ROOT / "build" / f".bank_{cfg.plant}.lock"
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    with lock.open("w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)  # released when the file closes
+        return wing.build_bank(cfg, progress=progress, seed=seed, log=log)
 
 
 def fault_rules(plant: str) -> tuple[tuple[str, ...], Callable[[FaultEvent], None]]:

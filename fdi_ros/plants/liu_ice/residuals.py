@@ -45,6 +45,7 @@ from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -410,6 +411,11 @@ class ResidualStream:
     ``step`` takes one feature vector (one sample) and returns (residuals in threshold units,
     valid, status); the same feature vector (index and time) again returns the memoised result, so
     every bank model of one process shares one computation.
+
+    Offline, :meth:`prime` computes a whole recorded stream at once (the raw residuals of each
+    contiguous run with array operations, the same filters sample by sample), and ``step`` then
+    answers from it; a reset (a model taken on line again) computes the rest of the stream
+    again from an empty history, as the sample-by-sample path would go on.
     """
 
     def __init__(self, rs: StructuredResiduals) -> None:
@@ -420,17 +426,105 @@ class ResidualStream:
         self._last_key: tuple[int, float] | None = None
         self._last: tuple[np.ndarray, bool, str] = (np.full(len(rs.specs), np.nan), False, "")
         self._last_t = -math.inf
+        # the primed stream, its results by position, where each sample first is, the last
+        # position answered
+        self._primed: list[tuple[np.ndarray, bool, str] | None] | None = None
+        self._feats: list[FeatureVector] = []
+        self._pos: dict[tuple[int, float], int] = {}
+        self._cursor, self._answered = -1, False
 
     def reset(self) -> None:
         self._hist.clear()
         self._scorer.reset()
         self._last_key = None
         self._last_t = -math.inf
+        if self._primed is not None and self._answered:
+            # the samples after the last one answered, from an empty history
+            k = self._cursor + 1
+            self._primed[k:] = self._compute(self._feats[k:])
+            self._answered = False
+
+    def prime(self, feats: Sequence[FeatureVector]) -> None:
+        """The results of ``feats`` (one recorded stream, in order) computed at once, equal to
+        stepping them one by one from an empty history (see the class docstring)."""
+        self._primed = None
+        self.reset()
+        self._feats = list(feats)
+        self._pos = {}
+        for i, fv in enumerate(self._feats):
+            self._pos.setdefault((int(fv.index), float(fv.t_end)), i)
+        self._cursor, self._answered = -1, False
+        self._primed = list(self._compute(self._feats))
+
+    def _compute(self, feats: Sequence[FeatureVector]) -> list[tuple[np.ndarray, bool, str]]:
+        """The results of ``feats`` stepped one by one from an empty history, by position."""
+        m = len(self.rs.specs)
+        plan: list[tuple[tuple[int, float], Any]] = []  # per sample: a result, or a run row
+        runs: list[list[list[float]]] = [[]]
+        hist, last_t = 0, -math.inf
+        for fv in feats:
+            key = (int(fv.index), float(fv.t_end))
+            if plan and key == plan[-1][0]:  # the same sample again: the same answer
+                plan.append((key, ("again", None)))
+                continue
+            try:
+                row = [fv.get(k) for k in RAW_SIGNALS]
+            except KeyError as exc:
+                hist, last_t = 0, -math.inf
+                runs.append([])
+                plan.append((key, ("reset", (np.full(m, np.nan), False,
+                                             f"feature missing: {exc}"))))
+                continue
+            if not fv.valid or not np.all(np.isfinite(row)) or fv.t_end <= last_t:
+                hist, last_t = 0, -math.inf
+                runs.append([])
+                plan.append((key, ("reset", (np.full(m, np.nan), False,
+                                             fv.status or "sample not valid"))))
+                continue
+            last_t = fv.t_end
+            runs[-1].append(row)
+            hist = min(hist + 1, self._history)
+            if hist < self._history:
+                plan.append((key, ("fill", (np.full(m, np.nan), False,
+                                            "not valid here: filling the history"))))
+            else:
+                plan.append((key, ("row", (len(runs) - 1, len(runs[-1]) - 1, row[0]))))
+        parts = {}
+        for i, rows in enumerate(runs):
+            if len(rows) >= self._history:
+                H = np.array(rows)
+                parts[i] = self.rs.raw_parts({k: H[:, j] for j, k in enumerate(RAW_SIGNALS)})
+        scorer = Scorer(self.rs)
+        out: list[tuple[np.ndarray, bool, str]] = []
+        for _, (kind, v) in plan:
+            if kind == "row":
+                i, j, n = v
+                R, settled, inside = parts[i]
+                out.append(scorer.step(R[j], bool(settled[j]), bool(inside[j]), n))
+            elif kind == "again":
+                out.append(out[-1])
+            else:
+                scorer.reset()
+                out.append(v)
+        return out
 
     def step(self, fv: FeatureVector) -> tuple[np.ndarray, bool, str]:
         key = (int(fv.index), float(fv.t_end))
         if key == self._last_key:
             return self._last
+        if self._primed is not None:
+            k = self._cursor + 1  # the next sample of the stream, else where this one first is
+            if not (k < len(self._feats) and (int(self._feats[k].index),
+                                              float(self._feats[k].t_end)) == key):
+                k = self._pos.get(key, -1)
+            hit = self._primed[k] if k >= 0 else None
+            if hit is not None:
+                self._cursor, self._answered = k, True
+                self._last_key, self._last = key, hit
+                return hit
+            # not a sample of the primed stream: sample by sample from here
+            self._primed = None
+            self.reset()
         self._last_key = key
         m = len(self.rs.specs)
         try:
@@ -488,6 +582,16 @@ class StructuredResidualModel:
 
     def reset(self) -> None:
         self.stream.reset()
+
+    def batch(self, features: Sequence[FeatureVector], shared: dict[str, Any]
+              ) -> StructuredResidualModel:
+        """Offline (:func:`fdi_ros.core.diagnoser.diagnose_offline`): the shared stream primed
+        with the whole recorded stream once; the model itself answers from it."""
+        key = f"liu_ice_stream_{id(self.stream)}"
+        if key not in shared:
+            self.stream.prime(features)
+            shared[key] = self.stream
+        return self
 
     def residuals(self, fv: FeatureVector) -> ResidualVector:
         vals, valid, status = self.stream.step(fv)

@@ -64,25 +64,26 @@ def pytest_sessionfinish(session, exitstatus):
                   f"{ROOT / 'build' / 'bank_background.log'}", file=sys.stderr)
 
 
-@pytest.fixture(scope="session")
-def diesel_bank() -> Path:
-    """The diesel graph's model bank (reference models, thresholds, fault hypotheses), built
-    once by the same code as `fdi-ros build-bank` when missing or stale; returns the config."""
+def _bank(fixture: str) -> Path:
+    """The configuration of ``fixture``'s bank, its models identified by the same code as
+    `fdi-ros build-bank` when missing or stale (waiting on the background build's lock)."""
     from fdi_ros.plants import ensure_bank
 
-    config = ROOT / "config" / "diesel.yaml"
+    config = ROOT / BANKS[fixture]
     ensure_bank(config, progress=False, log=lambda s: None)
     return config
+
+
+@pytest.fixture(scope="session")
+def diesel_bank() -> Path:
+    """The diesel graph's model bank (reference models, thresholds, fault hypotheses)."""
+    return _bank("diesel_bank")
 
 
 @pytest.fixture(scope="session")
 def turbofan_bank() -> Path:
-    """The turbofan graph's TS node models, trained once (as `fdi-ros build-bank`)."""
-    from fdi_ros.plants import ensure_bank
-
-    config = ROOT / "config" / "turbofan.yaml"
-    ensure_bank(config, progress=False, log=lambda s: None)
-    return config
+    """The turbofan graph's TS node models."""
+    return _bank("turbofan_bank")
 
 
 @pytest.fixture(scope="session")

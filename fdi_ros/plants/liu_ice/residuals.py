@@ -405,6 +405,27 @@ class Scorer:
         return (moving - c) / self.rs.thresholds_at(n, transient=True), True, TRANSIENT
 
 
+_FILLING = "not valid here: filling the history"
+
+
+def _key(fv: FeatureVector) -> tuple[int, float]:
+    """A sample's identity in a stream (the same vector again is answered from memory)."""
+    return int(fv.index), float(fv.t_end)
+
+
+def _admitted(fv: FeatureVector, last_t: float) -> tuple[list[float] | None, str]:
+    """(the sample's raw signals, "") when it continues the history, else (None, why not): a
+    missing feature, a gap, a bad sample or time going back (the history is no longer
+    contiguous and starts again)."""
+    try:
+        row = [fv.get(k) for k in RAW_SIGNALS]
+    except KeyError as exc:
+        return None, f"feature missing: {exc}"
+    if not fv.valid or not np.all(np.isfinite(row)) or fv.t_end <= last_t:
+        return None, fv.status or "sample not valid"
+    return row, ""
+
+
 class ResidualStream:
     """Per-stream state of a residual set: history of raw samples, filter, last result.
 
@@ -428,7 +449,7 @@ class ResidualStream:
         self._last_t = -math.inf
         # the primed stream, its results by position, where each sample first is, the last
         # position answered
-        self._primed: list[tuple[np.ndarray, bool, str] | None] | None = None
+        self._primed: list[tuple[np.ndarray, bool, str]] | None = None
         self._feats: list[FeatureVector] = []
         self._pos: dict[tuple[int, float], int] = {}
         self._cursor, self._answered = -1, False
@@ -452,7 +473,7 @@ class ResidualStream:
         self._feats = list(feats)
         self._pos = {}
         for i, fv in enumerate(self._feats):
-            self._pos.setdefault((int(fv.index), float(fv.t_end)), i)
+            self._pos.setdefault(_key(fv), i)
         self._cursor, self._answered = -1, False
         self._primed = list(self._compute(self._feats))
 
@@ -463,30 +484,21 @@ class ResidualStream:
         runs: list[list[list[float]]] = [[]]
         hist, last_t = 0, -math.inf
         for fv in feats:
-            key = (int(fv.index), float(fv.t_end))
+            key = _key(fv)
             if plan and key == plan[-1][0]:  # the same sample again: the same answer
                 plan.append((key, ("again", None)))
                 continue
-            try:
-                row = [fv.get(k) for k in RAW_SIGNALS]
-            except KeyError as exc:
+            row, why = _admitted(fv, last_t)
+            if row is None:
                 hist, last_t = 0, -math.inf
                 runs.append([])
-                plan.append((key, ("reset", (np.full(m, np.nan), False,
-                                             f"feature missing: {exc}"))))
-                continue
-            if not fv.valid or not np.all(np.isfinite(row)) or fv.t_end <= last_t:
-                hist, last_t = 0, -math.inf
-                runs.append([])
-                plan.append((key, ("reset", (np.full(m, np.nan), False,
-                                             fv.status or "sample not valid"))))
+                plan.append((key, ("reset", (np.full(m, np.nan), False, why))))
                 continue
             last_t = fv.t_end
             runs[-1].append(row)
             hist = min(hist + 1, self._history)
             if hist < self._history:
-                plan.append((key, ("fill", (np.full(m, np.nan), False,
-                                            "not valid here: filling the history"))))
+                plan.append((key, ("fill", (np.full(m, np.nan), False, _FILLING))))
             else:
                 plan.append((key, ("row", (len(runs) - 1, len(runs[-1]) - 1, row[0]))))
         parts = {}
@@ -509,42 +521,33 @@ class ResidualStream:
         return out
 
     def step(self, fv: FeatureVector) -> tuple[np.ndarray, bool, str]:
-        key = (int(fv.index), float(fv.t_end))
+        key = _key(fv)
         if key == self._last_key:
             return self._last
         if self._primed is not None:
             k = self._cursor + 1  # the next sample of the stream, else where this one first is
-            if not (k < len(self._feats) and (int(self._feats[k].index),
-                                              float(self._feats[k].t_end)) == key):
+            if not (k < len(self._feats) and _key(self._feats[k]) == key):
                 k = self._pos.get(key, -1)
-            hit = self._primed[k] if k >= 0 else None
-            if hit is not None:
+            if k >= 0:
                 self._cursor, self._answered = k, True
-                self._last_key, self._last = key, hit
-                return hit
+                self._last_key, self._last = key, self._primed[k]
+                return self._last
             # not a sample of the primed stream: sample by sample from here
             self._primed = None
             self.reset()
         self._last_key = key
         m = len(self.rs.specs)
-        try:
-            row = [fv.get(k) for k in RAW_SIGNALS]
-        except KeyError as exc:
+        row, why = _admitted(fv, self._last_t)
+        if row is None:
             self.reset()
             self._last_key = key
-            self._last = (np.full(m, np.nan), False, f"feature missing: {exc}")
-            return self._last
-        if not fv.valid or not np.all(np.isfinite(row)) or fv.t_end <= self._last_t:
-            # a gap, a bad sample or time going back: the history is no longer contiguous
-            self.reset()
-            self._last_key = key
-            self._last = (np.full(m, np.nan), False, fv.status or "sample not valid")
+            self._last = (np.full(m, np.nan), False, why)
             return self._last
         self._last_t = fv.t_end
         self._hist.append(row)
         if len(self._hist) < self._history:
             self._scorer.reset()
-            self._last = (np.full(m, np.nan), False, "not valid here: filling the history")
+            self._last = (np.full(m, np.nan), False, _FILLING)
             return self._last
         H = np.array(self._hist)
         sig = {k: H[:, i] for i, k in enumerate(RAW_SIGNALS)}

@@ -210,11 +210,13 @@ def run(args: argparse.Namespace) -> int:
                                                        args.effects.split(","))
     cfg = DiscrepancyConfig(alpha=args.alpha, min_gain_pct=args.min_gain, effects=effects)
     baseline = build_baseline(args, say)
-    missing = [s for s in baseline.inputs + baseline.channels if s not in data.signals]
+    from fdi_ros.core.discrepancy.model import signals_read
+
+    missing = [s for s in signals_read(baseline) if s not in data.signals]
     if missing:
         raise ValueError(f"{args.measured}: the {args.plant} model needs signals {missing}; "
                          f"the data has {sorted(data.signals)} (a mapping file renames columns)")
-    skipped = data.skipped(list(dict.fromkeys(baseline.inputs + baseline.channels)))
+    skipped = data.skipped(list(signals_read(baseline)))
     if skipped["samples"]:
         per = ", ".join(f"{k} in {n}" for n, k in skipped["by_signal"].items())
         print(f"fdi-ros discrepancy: skipped {skipped['samples']} of {skipped['of']} samples "

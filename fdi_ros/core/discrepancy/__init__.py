@@ -49,12 +49,16 @@ def discover(data: Measured, model: Any, *, config: DiscrepancyConfig | None = N
              ) -> tuple[DiscrepancyResult, ExtendedModel]:
     """Analyse ``data`` against ``model`` (:func:`_discover`), then name honest ties.
 
-    A gain error found on a channel is checked against gains on each of the model's input
-    sensors (:func:`.ties.input_gain_ties`); those the data cannot tell apart join the
+    A gain error found on a channel that no input-sensor candidate was scored against (an
+    analysis without sensor candidates) is checked against gains on each of the model's
+    input sensors (:func:`.ties.input_gain_ties`); those the data cannot tell apart join the
     finding's alternatives with the measurement that would separate them.
     """
     res, ext = _discover(data, model, config=config, progress=progress)
     cfg = config or DiscrepancyConfig()
+    sensor_kinds = cfg.sensor_effects if cfg.sensor_effects is not None else cfg.effects
+    if "gain_error" in sensor_kinds:
+        return res, ext  # input gains were candidates: ties come from the joint scores
     for i, f in enumerate(res.findings):
         if (f.effect != "gain_error" or "gain" not in f.params or "changes_s" in f.params
                 or _is_sensor(f)):
@@ -78,7 +82,23 @@ def discover(data: Measured, model: Any, *, config: DiscrepancyConfig | None = N
 
 def _is_sensor(f: Finding) -> bool:
     """A finding that is an error of an input sensor (seen on another channel's residual)."""
-    return bool(f.model_channel) and f.channel != f.model_channel
+    return f.input_sensor or (bool(f.model_channel) and f.channel != f.model_channel
+                              and not f.residuals)
+
+
+def pulsation_views(data: Measured, model: Any) -> dict[str, ChannelContext]:
+    """The crank-resolved residuals of a pulsating model with the mean of every 180 deg CA
+    segment removed: what an error of the channel's sensor or of an input does to the
+    pulsation (a gain of the channel scales it, an input's error moves the predicted
+    pulsation), beside the segment means where the mean-value effects are found."""
+    assert data.alpha is not None
+    seg = np.floor((data.alpha - data.alpha[0]) / 180.0 + 1e-9).astype(np.int64)
+    out = {}
+    for ch, ctx in build_contexts(data, model).items():
+        ctx.pulse = seg
+        ctx.measured = ctx.signal
+        out[f"{ch} (pulsation)"] = ctx
+    return out
 
 
 def _discover(data: Measured, model: Any, *, config: DiscrepancyConfig | None = None,
@@ -100,8 +120,10 @@ def _discover(data: Measured, model: Any, *, config: DiscrepancyConfig | None = 
         # crank-resolved data, mean-value model: compare the means of the 180 deg CA segments
         data, view = segment_means(data), "segment means"
     if data.alpha is None or not getattr(model, "orders", ()):
-        res = analyse(build_contexts(data, model, sensors=True), config=cfg,
-                      progress=progress)
+        ctxs = build_contexts(data, model, sensors=True)
+        # residuals the model marks as checks score the leading explanations only
+        checks = {k: ctxs.pop(k) for k in getattr(model, "checks", ()) if k in ctxs}
+        res = analyse(ctxs, config=cfg, progress=progress, secondary=checks)
         res.findings = [replace(f, view=view) for f in res.findings]
         return res, ExtendedModel(baseline=model, chains=res.chains, source=data.source)
     mean_model = model.without_pulsation()
@@ -113,9 +135,9 @@ def _discover(data: Measured, model: Any, *, config: DiscrepancyConfig | None = 
 
     def on_top(ctxs: dict[str, ChannelContext], before: DiscrepancyResult | None
                ) -> dict[str, ChannelContext]:
-        for ch, ctx in ctxs.items():
+        for ctx in ctxs.values():
             if before is not None:
-                ctx.yhat = apply_chain(ctx, before.chains.get(ch, []))
+                ctx.yhat = apply_chain(ctx, before.chains.get(ctx.channel, []))
         return ctxs
 
     res_1 = None
@@ -124,14 +146,15 @@ def _discover(data: Measured, model: Any, *, config: DiscrepancyConfig | None = 
                         config=replace(cfg, effects=stage1, max_findings=1),
                         progress=progress)
     res_a = analyse(on_top(build_contexts(means, mean_model, sensors=True), res_1),
-                    config=cfg_a, progress=progress)
+                    config=cfg_a, progress=progress,
+                    secondary=on_top(pulsation_views(data, model), res_1))
     if res_1 is not None and res_1.findings and any(_is_sensor(f) for f in res_a.findings):
         # Joint check: an input sensor's error moves every part of the prediction made from
         # that input, the pulsation included. When the sensor error found on the means alone
         # also explains the crank-resolved view, the lag or dead time found there first was
         # its echo: the sensor error is kept, the echo dropped.
         alone = analyse(build_contexts(means, mean_model, sensors=True), config=cfg_a,
-                        progress=progress)
+                        progress=progress, secondary=pulsation_views(data, model))
         if alone.findings and _is_sensor(alone.findings[0]):
             again = analyse(on_top(build_contexts(data, model), alone),
                             config=replace(cfg, effects=stage1, max_findings=1),

@@ -127,6 +127,28 @@ class ChannelContext:
     sensors: tuple[str, ...] = ()  # input sensors whose errors are candidate explanations
     source: Any = field(default=None, repr=False)  # (data, model) behind ``sensor_response``
     responses: dict[Any, np.ndarray] = field(default_factory=dict, repr=False)
+    # the measured signal this residual compares with its model ("" = ``channel`` itself) and
+    # the signals the model reads: an error of one of them moves this residual
+    measured: str = ""
+    uses: tuple[str, ...] = ()
+    # errors judged with the mean of every 180 deg CA segment removed (the pulsation view of
+    # crank-resolved data); ``pulse`` holds the segment index of every sample
+    pulse: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def signal(self) -> str:
+        """The measured signal of this residual."""
+        return self.measured or self.channel
+
+    def pulsation(self, x: np.ndarray) -> np.ndarray:
+        """``x`` minus its mean over each 180 deg CA segment (``x`` itself without
+        ``pulse``); NaN samples do not count and stay NaN."""
+        if self.pulse is None:
+            return x
+        ok = np.isfinite(x)
+        s = np.bincount(self.pulse[ok], weights=x[ok], minlength=int(self.pulse.max()) + 1)
+        c = np.bincount(self.pulse[ok], minlength=s.size)
+        return np.asarray(x - (s / np.maximum(c, 1))[self.pulse], float)
 
     def sensor_lag_response(self, sensor: str, tau_s: float) -> np.ndarray:
         """``yhat(x + tau dx/dt) - yhat(x)``: the prediction from the reading of ``sensor``
@@ -258,18 +280,23 @@ def build_contexts(data: Measured, model: Any, *, derivative_window_s: float = 0
     """
     pred = model.predict(data)
     region = model.region(data)
-    used = set(model.inputs)
+    # a model with several residuals may say which signal each one measures (default: the
+    # channel of that name) and which signals each one's model reads (default: all inputs)
+    measures = dict(getattr(model, "measures", None) or {})
+    uses = dict(getattr(model, "uses", None) or {})
     derivs = {f"d/dt {k}": smooth_derivative(v, data.t, data.segment, derivative_window_s)
               for k, v in data.signals.items() if np.isfinite(v).mean() > 0.5
               and np.nanstd(v) > 0}
     out = {}
     for ch in model.channels:
-        if ch not in data.signals:
+        sig_name = measures.get(ch, ch)
+        if sig_name not in data.signals:
             continue
+        reads = tuple(uses.get(ch, model.inputs))
         cols = {k: v for k, v in data.signals.items()
-                if k not in used and k != ch and np.isfinite(v).mean() > 0.5
+                if k not in reads and k != sig_name and np.isfinite(v).mean() > 0.5
                 and np.nanstd(v) > 0}
-        cols.update({k: v for k, v in derivs.items() if k != f"d/dt {ch}"})
+        cols.update({k: v for k, v in derivs.items() if k != f"d/dt {sig_name}"})
         spec = next((s for s in getattr(model, "leaks", ()) if s.channel == ch), None)
         q = None
         if spec is not None:
@@ -277,17 +304,18 @@ def build_contexts(data: Measured, model: Any, *, derivative_window_s: float = 0
                 q = leak_regressor(data, spec) * spec.flow_scale
             except KeyError:
                 spec, q = None, None
-        out[ch] = ChannelContext(channel=ch, unit=data.units.get(ch, ""), t=data.t,
-                                 y=np.asarray(data[ch], float), yhat=np.asarray(pred[ch], float),
+        readable = tuple(s for s in dict.fromkeys(reads)
+                         if s in data.signals and s != sig_name
+                         and np.isfinite(data[s]).mean() > 0.5 and np.nanstd(data[s]) > 0)
+        out[ch] = ChannelContext(channel=ch, unit=data.units.get(sig_name, ""), t=data.t,
+                                 y=np.asarray(data[sig_name], float),
+                                 yhat=np.asarray(pred[ch], float),
                                  segment=data.segment, columns=cols, region=region,
                                  alpha=data.alpha, leak_q=q, leak=spec,
                                  t_ref=float(data.t[0] if t_ref is None else t_ref),
-                                 sensors=(tuple(s for s in dict.fromkeys(model.inputs)
-                                                if s in data.signals and s != ch
-                                                and np.isfinite(data[s]).mean() > 0.5
-                                                and np.nanstd(data[s]) > 0)
-                                          if sensors else ()),
-                                 source=(data, model))
+                                 sensors=readable if sensors else (),
+                                 source=(data, model),
+                                 measured=sig_name if sig_name != ch else "", uses=readable)
     if not out:
         raise ValueError(f"the measured data has none of the model's channels {model.channels} "
                          f"(signals: {sorted(data.signals)})")

@@ -126,35 +126,22 @@ def _train_mask(ctx: ChannelContext, base: np.ndarray, train: np.ndarray,
 
 
 def _fit_scalar(r: np.ndarray, g: np.ndarray, t: np.ndarray, m: np.ndarray, *, onset: bool,
-                nonneg: bool, max_grid: int = 300) -> tuple[float, float | None]:
-    """Least-squares ``r ~ beta * g * 1(t >= t_on)``; ``t_on`` searched when ``onset``.
+                nonneg: bool) -> tuple[float, float | None]:
+    """Least-squares ``r ~ beta * g * 1(t >= t_on)``; ``t_on`` located when ``onset``.
 
-    Returns (beta, t_on or None). Reverse cumulative sums make the onset scan one pass.
+    The onset is the change point of the ratio ``r / g`` (:func:`ratio_change_point`): the
+    effect per unit of its regressor steps from 0 to beta at the onset whatever the operating
+    point, where a squared-error fit of ``r`` would put the onset where the regressor is
+    large. Beta is then the least-squares fit on the samples after the onset.
+    Returns (beta, t_on or None).
     """
-    idx = np.flatnonzero(m)
+    t_on = ratio_change_point(r, g, t, m) if onset else None
+    idx = np.flatnonzero(m if t_on is None else m & (t >= t_on))
     if idx.size < 3:
         return 0.0, None
-    rg, gg = r[idx] * g[idx], g[idx] ** 2
-    if not onset:
-        den = gg.sum()
-        beta = rg.sum() / den if den > 0 else 0.0
-        return (max(beta, 0.0) if nonneg else beta), None
-    srg = np.cumsum(rg[::-1])[::-1]
-    sgg = np.cumsum(gg[::-1])[::-1]
-    min_after = max(20, idx.size // 50)
-    last = idx.size - min_after
-    if last <= 0:
-        return 0.0, None
-    pos = np.unique(np.linspace(0, last, min(max_grid, last + 1)).astype(int))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        gain = np.where(sgg[pos] > 0, srg[pos] ** 2 / sgg[pos], 0.0)
-    if nonneg:
-        gain = np.where(srg[pos] > 0, gain, 0.0)
-    k = int(pos[int(np.argmax(gain))])
-    beta = srg[k] / sgg[k] if sgg[k] > 0 else 0.0
-    if nonneg:
-        beta = max(beta, 0.0)
-    return float(beta), (None if k == 0 else float(t[idx[k]]))
+    den = float(np.dot(g[idx], g[idx]))
+    beta = float(np.dot(r[idx], g[idx])) / den if den > 0 else 0.0
+    return (max(beta, 0.0) if nonneg else beta), t_on
 
 
 def _fit_piecewise(r: np.ndarray, g: np.ndarray, t: np.ndarray, m: np.ndarray, *,
@@ -205,28 +192,30 @@ def _fit_piecewise(r: np.ndarray, g: np.ndarray, t: np.ndarray, m: np.ndarray, *
     return [float(t[idx[c]]) for c in cuts[1:-1]], betas
 
 
-def _relative_change_point(y: np.ndarray, base: np.ndarray, t: np.ndarray, m: np.ndarray
-                           ) -> float | None:
-    """Onset of a gain change: the mean-shift change point of the relative residual.
+def ratio_change_point(r: np.ndarray, g: np.ndarray, t: np.ndarray, m: np.ndarray
+                       ) -> float | None:
+    """Onset of an effect ``r = beta g`` that switches on: the mean-shift change point of the
+    ratio ``r / g``.
 
-    A gain g multiplies the prediction, so ``y / yhat - 1`` steps from 0 to ``g - 1`` at the
-    onset whatever the load; on the absolute residual the step is proportional to the flow and
-    vanishes at idle, and a squared-error fit puts the onset where load returns. Samples with
-    a prediction below 5 % of its median magnitude are left out (the ratio is noise there);
-    each sample's ratio is clipped to the 1-99 % quantiles so a few outliers cannot place the
-    change. Returns None when the best split is the start of the record.
+    The ratio steps from its level before (0 for a fault-free model) to ``beta`` at the onset
+    whatever the regressor's size: for a gain (``g`` the prediction) it is the relative
+    residual ``y / yhat - 1``, which steps at idle as well, where the absolute residual of a
+    10 % gain is smaller than the model's own error; a squared-error fit of ``r`` would put
+    the onset where the load returns. Samples with ``|g|`` below 5 % of its median magnitude
+    are left out (the ratio is noise there); each sample's ratio is clipped to the 1-99 %
+    quantiles so a few outliers cannot place the change. The split maximises the CUSUM
+    statistic ``n / (k (n - k)) (sum of the first k demeaned ratios)^2`` (at least 2 % of
+    the samples, and 20, on each side). Returns None when there is no split.
     """
-    scale = float(np.median(np.abs(base[m]))) if m.any() else 0.0
-    mm = m & (np.abs(base) > 0.05 * scale)
-    if mm.sum() < 40:
+    scale = float(np.median(np.abs(g[m]))) if m.any() else 0.0
+    mm = m & np.isfinite(r) & (np.abs(g) > 0.05 * scale)
+    if mm.sum() < 40 or scale == 0.0:
         return None
-    rr = np.full(y.shape, np.nan)
-    rr[mm] = y[mm] / base[mm] - 1.0
-    lo, hi = np.quantile(rr[mm], [0.01, 0.99])
-    rr = np.clip(rr, lo, hi)
-    # mean shift: split the demeaned ratio where the two means differ most (CUSUM statistic)
     idx = np.flatnonzero(mm)
-    x = rr[idx] - rr[idx].mean()
+    rr = r[idx] / g[idx]
+    lo, hi = np.quantile(rr, [0.01, 0.99])
+    x = np.clip(rr, lo, hi)
+    x = x - x.mean()
     n = idx.size
     k = np.arange(1, n)
     c = np.cumsum(x)[:-1]
@@ -236,6 +225,12 @@ def _relative_change_point(y: np.ndarray, base: np.ndarray, t: np.ndarray, m: np
     stat[n - lo_k:] = 0.0
     j = int(np.argmax(stat))
     return float(t[idx[j + 1]]) if stat[j] > 0 else None
+
+
+def _relative_change_point(y: np.ndarray, base: np.ndarray, t: np.ndarray, m: np.ndarray
+                           ) -> float | None:
+    """Onset of a gain change: :func:`ratio_change_point` of the relative residual."""
+    return ratio_change_point(y - base, base, t, m)
 
 
 def _piecewise_beta(t: np.ndarray, params: dict[str, Any]) -> np.ndarray:

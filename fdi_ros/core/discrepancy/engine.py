@@ -33,16 +33,18 @@ Procedure for each channel (greedy forward selection, at most ``max_findings`` s
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from scipy import stats
 
 from fdi_ros.core.discrepancy.context import ChannelContext
-from fdi_ros.core.discrepancy.effects import CATALOGUE, Effect, SensorError, candidates
+from fdi_ros.core.discrepancy.effects import CATALOGUE, Effect, SensorError
+from fdi_ros.core.discrepancy.joint import Hypothesis, fit_hypothesis, hypotheses
 from fdi_ros.core.discrepancy.ties import tie_reason
 
 
@@ -79,6 +81,7 @@ class DiscrepancyConfig:
     effects: tuple[str, ...] = CATALOGUE
     onset: bool = True
     sensor_effects: tuple[str, ...] | None = None
+    penalty: bool = False
 
     def __post_init__(self) -> None:
         rules = ((self.n_blocks is None or self.n_blocks >= 4,
@@ -115,6 +118,8 @@ class Candidate(_Scored):
     """Held-out score of one candidate extension in one greedy step."""
 
     mse_blocks: np.ndarray = field(repr=False)
+    residuals: tuple[str, ...] = ()  # the residuals it moves
+    shown_on: str = ""  # the residual whose held-out RMSE the record reports
 
 
 @dataclass(frozen=True)
@@ -129,6 +134,10 @@ class Finding(_Scored):
     view: str = "samples"  # "samples", "segment means" or "crank-resolved"
     model_channel: str = ""  # the residual that shows it (a sensor error of an input: the
     # channel the model predicts from that input); empty: ``channel`` itself
+    residuals: tuple[str, ...] = ()  # every residual it moves (scored on all of them at once)
+    shown_on: str = ""  # the residual whose held-out RMSE before/after is reported
+    input_sensor: bool = False  # an error of a sensor the model reads (not of a residual's
+    # own measurement)
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = _jsonable(asdict(self))
@@ -200,10 +209,13 @@ def _jsonable(x: Any) -> Any:
     return x
 
 
-def make_blocks(t: np.ndarray, ok: np.ndarray, n_blocks: int) -> np.ndarray:
-    """Block id per sample (-1 where not ok): equal-duration contiguous blocks."""
+def make_blocks(t: np.ndarray, ok: np.ndarray, n_blocks: int,
+                span: tuple[float, float] | None = None) -> np.ndarray:
+    """Block id per sample (-1 where not ok): equal-duration contiguous blocks over ``span``
+    (default: the valid samples' time range)."""
     tv = t[ok]
-    edges = np.linspace(tv[0], tv[-1], n_blocks + 1)
+    lo, hi = (tv[0], tv[-1]) if span is None else span
+    edges = np.linspace(lo, hi, n_blocks + 1)
     blk = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, n_blocks - 1)
     return np.where(ok, blk, -1)
 
@@ -297,29 +309,56 @@ def loss_differential_p(e_before: np.ndarray, e_after: np.ndarray) -> tuple[floa
     return float(stats.t.sf(tstat, dof)), L
 
 
-def _nests(big: Effect, small: Effect) -> bool:
-    """True when ``small`` is a special case of ``big`` (the same effect with fewer change
-    times: always on < after an onset < piecewise constant in time)."""
-    if big.id != small.id or getattr(big, "sensor", "") != getattr(small, "sensor", ""):
+def _lead(h: Hypothesis) -> Effect:
+    """The effect a hypothesis is fitted through (its first member)."""
+    return h.members[0][1]
+
+
+def _nests(big: Hypothesis, small: Hypothesis) -> bool:
+    """True when ``small`` is a special case of ``big`` (the same effect of the same carrier
+    with fewer change times: always on < after an onset < piecewise constant in time)."""
+    a, b = _lead(big), _lead(small)
+    if big.effect != small.effect or big.carrier != small.carrier or getattr(
+            a, "sensor", "") != getattr(b, "sensor", ""):
         return False
-    if getattr(big, "piecewise", False):
-        return not getattr(small, "piecewise", True)
-    return getattr(big, "onset", False) and not getattr(small, "onset", True) and not getattr(
-        small, "piecewise", True)
+    if getattr(a, "piecewise", False):
+        return not getattr(b, "piecewise", True)
+    return getattr(a, "onset", False) and not getattr(b, "onset", True) and not getattr(
+        b, "piecewise", True)
 
 
-def _one_se_choice(scored: list[tuple[Effect, Candidate]], alpha: float
-                   ) -> tuple[Effect, Candidate]:
-    """Lowest held-out MSE, or a special case of it within one standard error of it.
+def penalised(c: Candidate, n_eff: float) -> float:
+    """Bayesian information criterion of a candidate on its held-out blocks.
+
+    ``n_eff ln(S) + k ln(n_eff)``: ``S`` the mean held-out score over the blocks (the
+    residuals' mean squared errors, each residual in units of its own noise level), ``k`` the
+    number of parameters, ``n_eff`` the number of effectively independent held-out values
+    (samples over the residual's correlation length). The held-out error already penalises
+    a fit to noise; the price on parameters makes an explanation with more parameters
+    (an onset, change times) earn its keep: with 50 independent values a second parameter
+    must lower the held-out error by about 8 %.
+    """
+    s = float(np.nanmean(c.mse_blocks))
+    return n_eff * math.log(max(s, 1e-300)) + c.n_params * math.log(max(n_eff, 2.0))
+
+
+def _one_se_choice(scored: list[tuple[Hypothesis, Candidate]], alpha: float,
+                   n_eff: float = 0.0) -> tuple[Hypothesis, Candidate]:
+    """The explanation with the lowest penalised held-out score (:func:`penalised`), or a
+    special case of it within one standard error.
 
     Nested alternatives compete on parsimony (an always-on gain error vs the same gain
     switching on at some time), and a time-varying best (drift, piecewise in time) yields to a
     dependence on a measured column within one standard error; an input sensor's error yields
-    to the same kind of error of the channel within one standard error, and a dependence on an
-    input's slope to that input's lag or dead time unless it is significantly worse; other
-    effects with different physics compete on held-out error.
+    to the same kind of error of a measured channel within one standard error, and a
+    dependence on an input's slope to that input's lag or dead time unless it is
+    significantly worse; other effects with different physics compete on held-out error.
+    ``n_eff`` = 0: no price on parameters (the lowest held-out score).
     """
-    best = min(scored, key=lambda ec: np.nanmean(ec[1].mse_blocks))
+    if n_eff > 0:
+        best = min(scored, key=lambda hc: penalised(hc[1], n_eff))
+    else:
+        best = min(scored, key=lambda hc: np.nanmean(hc[1].mse_blocks))
     tol = 1e-3 * float(np.nanmean(best[1].mse_blocks))
 
     def within_one_se(c: Candidate) -> bool:
@@ -327,42 +366,42 @@ def _one_se_choice(scored: list[tuple[Effect, Candidate]], alpha: float
         d = d[np.isfinite(d)]
         return bool(d.size >= 3 and d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size) + tol)
 
-    if getattr(best[0], "sensor", ""):
-        # the same kind of error on the analysed channel itself, within one standard error of
-        # an input sensor's: the channel's own error is named (it needs no second faulty
-        # sensor), the input sensor's stays among the reported ties
-        own = [(eff, c) for eff, c in scored if not getattr(eff, "sensor", "")
-               and eff.id == best[0].id and c.p_adjusted < alpha and within_one_se(c)]
+    if getattr(_lead(best[0]), "sensor", ""):
+        # the same kind of error of a measured channel, within one standard error of an input
+        # sensor's: the channel's own error is named (it needs no second faulty sensor), the
+        # input sensor's stays among the reported ties
+        own = [(h, c) for h, c in scored if not getattr(_lead(h), "sensor", "")
+               and h.effect == best[0].effect and c.p_adjusted < alpha and within_one_se(c)]
         if own:
-            best = min(own, key=lambda ec: np.nanmean(ec[1].mse_blocks))
-    column = str(getattr(best[0], "column", ""))
-    if best[0].id == "input_dependence" and column.startswith("d/dt "):
+            best = min(own, key=lambda hc: np.nanmean(hc[1].mse_blocks))
+    column = str(getattr(_lead(best[0]), "column", ""))
+    if best[0].effect == "input_dependence" and column.startswith("d/dt "):
         # the residual following the slope of one of the model's inputs is what a lag or
         # dead time of that sensor produces (to first order the same explanation): unless it
         # is significantly worse, the sensor's timing error is named (as many parameters, and
         # it predicts through the model)
-        timing = [(eff, c) for eff, c in scored
-                  if getattr(eff, "sensor", "") == column[5:]
-                  and eff.id in ("sensor_lag", "dead_time") and c.p_adjusted < alpha
+        timing = [(h, c) for h, c in scored
+                  if h.carrier == column[5:] and h.effect in ("sensor_lag", "dead_time")
+                  and c.p_adjusted < alpha
                   and paired_p(c.mse_blocks, best[1].mse_blocks) >= alpha]
         if timing:
-            best = min(timing, key=lambda ec: np.nanmean(ec[1].mse_blocks))
-    if _time_varying(best[0]):
+            best = min(timing, key=lambda hc: np.nanmean(hc[1].mse_blocks))
+    if _time_varying(_lead(best[0])):
         # a change over time is accepted only if no measured column explains the same
         # residual: a dependence on a measured signal (few parameters, predicts new data)
         # beats a drift or a piecewise-in-time fit within one standard error of it
-        measured = [(eff, c) for eff, c in scored if eff.id == "input_dependence"
-                    and eff.n_params <= best[0].n_params and c.p_adjusted < alpha
+        measured = [(h, c) for h, c in scored if h.effect == "input_dependence"
+                    and h.n_params <= best[0].n_params and c.p_adjusted < alpha
                     and within_one_se(c)]
         if measured:
-            return min(measured, key=lambda ec: np.nanmean(ec[1].mse_blocks))
+            return min(measured, key=lambda hc: np.nanmean(hc[1].mse_blocks))
     eligible = [best]
-    for eff, c in scored:
-        if not _nests(best[0], eff) or c.p_adjusted >= alpha:
+    for h, c in scored:
+        if not _nests(best[0], h) or c.p_adjusted >= alpha:
             continue
         if within_one_se(c):
-            eligible.append((eff, c))
-    return min(eligible, key=lambda ec: (ec[0].n_params, np.nanmean(ec[1].mse_blocks)))
+            eligible.append((h, c))
+    return min(eligible, key=lambda hc: (hc[0].n_params, np.nanmean(hc[1].mse_blocks)))
 
 
 def _time_varying(eff: Effect) -> bool:
@@ -445,7 +484,12 @@ def _folds(ctx: ChannelContext, cfg: DiscrepancyConfig, blk: np.ndarray, nb: int
 
 @dataclass
 class _Channel:
-    """One channel under analysis: its context, folds and blocks."""
+    """One residual under analysis (a view): its context, folds and blocks.
+
+    ``secondary``: a residual that checks the leading explanations only (none is proposed
+    there, none is tested for significance there): e.g. the crank-resolved pulsation of a
+    channel whose mean-value effects are found on segment means.
+    """
 
     name: str
     ctx: ChannelContext
@@ -454,66 +498,182 @@ class _Channel:
     trains: list[np.ndarray]
     tests: list[np.ndarray]
     ok: np.ndarray  # valid samples (one array for the whole analysis of the channel)
+    secondary: bool = False
+
+    def err(self, pred: np.ndarray) -> np.ndarray:
+        return self.ctx.pulsation(self.ctx.y - pred)
 
     def rmse(self, pred: np.ndarray) -> float:
-        return float(np.sqrt(np.nanmean((self.ctx.y - pred)[self.ok] ** 2)))
+        return float(np.sqrt(np.nanmean(self.err(pred)[self.ok] ** 2)))
 
     def block_mse(self, pred: np.ndarray) -> np.ndarray:
-        return _block_mse((self.ctx.y - pred) ** 2, self.blk, self.nb)
+        return _block_mse(self.err(pred) ** 2, self.blk, self.nb)
 
 
-def _held_out_chain(c: _Channel, chain: list[Effect]) -> tuple[list[np.ndarray], np.ndarray]:
-    """Per fold the chain's prediction, and the held-out prediction of every sample."""
-    bases = []
-    before = np.full(c.ctx.n, np.nan)
-    for tr, te in zip(c.trains, c.tests):
-        pred, _ = fit_chain(c.ctx, chain, tr)
-        bases.append(pred)
-        before[te] = pred[te]
-    return bases, before
+@dataclass
+class _Step:
+    """The current model of every residual, per fold and held out (one greedy step)."""
+
+    bases: dict[str, list[np.ndarray]]
+    before: dict[str, np.ndarray]
+    mse_b: dict[str, np.ndarray]
+    rmse_b: dict[str, float]
 
 
-def _score(c: _Channel, eff: Effect, bases: list[np.ndarray], before: np.ndarray,
-           rmse_b: float, mse_b: np.ndarray) -> tuple[Candidate, np.ndarray] | None:
-    """Held-out score of one candidate effect on top of the chain (None: it cannot fit)."""
-    ctx = c.ctx
-    after = np.full(ctx.n, np.nan)
+def _contexts(views: dict[str, _Channel]) -> dict[str, ChannelContext]:
+    return {v: c.ctx for v, c in views.items()}
+
+
+def _fit_in(views: dict[str, _Channel], h: Hypothesis, preds: dict[str, np.ndarray],
+            trains: dict[str, np.ndarray], *, refine: bool = False
+            ) -> list[dict[str, Any]]:
+    """``h``'s member parameters (:func:`~fdi_ros.core.discrepancy.joint.fit_hypothesis`)."""
+    return fit_hypothesis(h, _contexts(views), preds, trains, refine=refine)
+
+
+def _held_out_chain(views: dict[str, _Channel], chain: list[Hypothesis]) -> _Step:
+    """Per fold the chain's prediction of every residual, and its held-out prediction."""
+    any_view = next(iter(views.values()))
+    bases: dict[str, list[np.ndarray]] = {v: [] for v in views}
+    before = {v: np.full(c.ctx.n, np.nan) for v, c in views.items()}
+    for k in range(len(any_view.trains)):
+        preds = {v: c.ctx.yhat for v, c in views.items()}
+        trains = {v: c.trains[k] for v, c in views.items()}
+        for h in chain:
+            for (v, eff), p in zip(h.members, _fit_in(views, h, preds, trains)):
+                if v in views:
+                    preds[v] = eff.apply(views[v].ctx, preds[v], p)
+        for v, c in views.items():
+            bases[v].append(preds[v])
+            te = c.tests[k]
+            before[v][te] = preds[v][te]
+    return _Step(bases=bases, before=before,
+                 mse_b={v: c.block_mse(before[v]) for v, c in views.items()},
+                 rmse_b={v: c.rmse(before[v]) for v, c in views.items()})
+
+
+def _held_out(views: dict[str, _Channel], h: Hypothesis, st: _Step, scope: set[str]
+              ) -> dict[str, np.ndarray] | None:
+    """Held-out prediction of every residual in ``scope`` that ``h`` moves (None: it cannot
+    be fitted)."""
+    touched = [v for v in h.views if v in scope]
+    if not touched:
+        return {}
+    after = {v: np.full(views[v].ctx.n, np.nan) for v in touched}
+    first = next(iter(views.values()))
     try:
-        for base, tr, te in zip(bases, c.trains, c.tests):
-            params = eff.fit(ctx, base, tr)
-            after[te] = eff.apply(ctx, base, params)[te]
-    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+        for k in range(len(first.trains)):
+            preds = {v: st.bases[v][k] for v in views}
+            trains = {v: c.trains[k] for v, c in views.items()}
+            for (v, eff), p in zip(h.members, _fit_in(views, h, preds, trains)):
+                if v in after:
+                    te = views[v].tests[k]
+                    after[v][te] = eff.apply(views[v].ctx, preds[v], p)[te]
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError, KeyError):
         return None
     # a candidate that cannot predict a sample leaves the model's value there
-    after = np.where(np.isfinite(after), after, before)
-    mse_a = c.block_mse(after)
+    return {v: np.where(np.isfinite(a), a, st.before[v]) for v, a in after.items()}
+
+
+@dataclass
+class _Scoring:
+    """Held-out predictions of the candidates of one step, per residual."""
+
+    after: dict[int, dict[str, np.ndarray]] = field(default_factory=dict)  # id(h) -> view
+    mse_a: dict[int, dict[str, np.ndarray]] = field(default_factory=dict)
+
+
+def _noise_levels(views: dict[str, _Channel], st: _Step, sc: _Scoring, hs: list[Hypothesis]
+                  ) -> dict[str, float]:
+    """Per residual the scale its block errors are measured in: the lowest mean held-out
+    error any candidate reaches there (the residual's noise level under the best
+    explanation), the current model's where no candidate moves it."""
+    level = {}
+    for v in views:
+        b = float(np.nanmean(st.mse_b[v]))
+        best = [float(np.nanmean(sc.mse_a[id(h)][v])) for h in hs
+                if id(h) in sc.mse_a and v in sc.mse_a[id(h)]]
+        lo = min(best + [b])
+        level[v] = max(lo, 1e-9 * b, 1e-300)
+    return level
+
+
+def _joint_blocks(views: dict[str, _Channel], per_view: dict[str, np.ndarray],
+                  level: dict[str, float]) -> np.ndarray:
+    """Blockwise score: the residuals' held-out mean squared errors, each in units of its
+    noise level, summed (a residual without samples in a block adds nothing)."""
+    stack = np.vstack([per_view[v] / level[v] for v in views])
+    out: np.ndarray = np.where(np.isfinite(stack).any(axis=0), np.nansum(stack, axis=0),
+                               np.nan)
+    return out
+
+
+def _candidate(views: dict[str, _Channel], h: Hypothesis, st: _Step, sc: _Scoring,
+               level: dict[str, float], score_b: np.ndarray) -> Candidate:
+    """The candidate record of ``h``: its blockwise joint score and, for the report, the
+    held-out RMSE of the residual it improves most."""
+    mse_a = sc.mse_a[id(h)]
+    per_view = {v: mse_a.get(v, st.mse_b[v]) for v in views}
+    score_a = _joint_blocks(views, per_view, level)
+
+    def rel(v: str) -> float:
+        return float(np.nanmean(mse_a[v]) / max(float(np.nanmean(st.mse_b[v])), 1e-300))
+
+    shown = [v for v in mse_a if v in views and not views[v].secondary]
+    show = min(shown, key=rel) if shown else h.primary
+    after = sc.after[id(h)].get(show, st.before[show])
+    c = views[show]
     rmse_a = c.rmse(after)
-    p = paired_p(mse_b, mse_a)
-    p_dm, _ = loss_differential_p(ctx.y - before, ctx.y - after)
-    return Candidate(effect=eff.id, label=eff.label, channel=carrier(eff, c.name),
-                     n_params=eff.n_params,
-                     rmse_before=rmse_b, rmse_after=rmse_a,
-                     gain_pct=100.0 * (1.0 - rmse_a / rmse_b), p_value=p, p_adjusted=p,
-                     p_dm=p_dm, mse_blocks=mse_a), after
+    p_dm, _ = loss_differential_p(c.err(st.before[show]), c.err(after))
+    return Candidate(effect=h.effect, label=h.label, channel=h.carrier, n_params=h.n_params,
+                     rmse_before=st.rmse_b[show], rmse_after=rmse_a,
+                     gain_pct=100.0 * (1.0 - rmse_a / st.rmse_b[show]),
+                     p_value=paired_p(score_b, score_a), p_adjusted=1.0, p_dm=p_dm,
+                     mse_blocks=score_a, residuals=tuple(sorted(mse_a)), shown_on=show)
 
 
-def carrier(eff: Effect, channel: str) -> str:
-    """The signal an effect is an error of: the input sensor of a sensor error, else the
-    channel whose residual is analysed."""
-    return str(getattr(eff, "sensor", "") or channel)
+def _score_all(views: dict[str, _Channel], hs: list[Hypothesis], st: _Step,
+               scope: set[str], sc: _Scoring) -> None:
+    for h in hs:
+        need = (scope & set(h.views)) - set(sc.after.get(id(h), {}))
+        if not need and id(h) in sc.after:
+            continue
+        got = _held_out(views, h, st, need)
+        if got is None:
+            continue
+        sc.after.setdefault(id(h), {}).update(got)
+        sc.mse_a.setdefault(id(h), {}).update(
+            {v: views[v].block_mse(a) for v, a in got.items()})
 
 
-def _alternatives(c: _Channel, chain: list[Effect], scored: list[tuple[Candidate, np.ndarray]],
-                  choice: Candidate, by_label: dict[str, Effect], alpha: float = 0.05,
-                  max_ties: int = 8) -> list[dict[str, Any]]:
+def _effective_n(views: dict[str, _Channel], st: _Step) -> float:
+    """Effectively independent held-out values of the primary residuals: samples over the
+    correlation length of the current residual (where its autocorrelation falls below 0.05)."""
+    n = 0.0
+    for v, c in views.items():
+        if c.secondary:
+            continue
+        e = c.err(st.before[v])[c.ok]
+        e = e[np.isfinite(e)]
+        if e.size < 10:
+            continue
+        n += e.size / max(1.0, hac_bandwidth(e) / 3.0)
+    return n
+
+
+def _alternatives(views: dict[str, _Channel], chain: list[Hypothesis],
+                  scored: list[tuple[Hypothesis, Candidate]], choice: Candidate,
+                  residual: str, alpha: float = 0.05, max_ties: int = 8
+                  ) -> list[dict[str, Any]]:
     """Other explanations the held-out data cannot tell apart from the choice, with their own
     parameters fitted on every valid sample: within one standard error of it, or significant
     themselves and not significantly worse than it (one-sided Wilcoxon over the blocks, level
     ``alpha``). One per effect and carrier (its best variant), best first."""
     alternatives: list[dict[str, Any]] = []
-    full_pred = None
+    full: dict[str, np.ndarray] | None = None
+    oks = {v: c.ok for v, c in views.items()}
     seen = {(choice.effect, choice.channel)}
-    for cand, _ in sorted(scored, key=lambda ca: float(np.nanmean(ca[0].mse_blocks))):
+    for h, cand in sorted(scored, key=lambda hc: float(np.nanmean(hc[1].mse_blocks))):
         if (cand.effect, cand.channel) in seen:
             continue  # one alternative per effect and channel: its best variant
         d = cand.mse_blocks - choice.mse_blocks
@@ -523,75 +683,137 @@ def _alternatives(c: _Channel, chain: list[Effect], scored: list[tuple[Candidate
         if d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size) or (
                 cand.p_adjusted < alpha
                 and paired_p(cand.mse_blocks, choice.mse_blocks) >= alpha):
-            if full_pred is None:
-                full_pred, _ = fit_chain(c.ctx, chain, c.ok)
-            alt = by_label[cand.label]
+            if full is None:
+                full = _fit_all(views, chain, oks)
+            params = _fit_in(views, h, full, oks, refine=True)[0]
             alt_d = {"effect": cand.effect, "label": cand.label, "channel": cand.channel,
                      "gain_pct": cand.gain_pct, "p_adjusted": cand.p_adjusted,
-                     "params": alt.fit(c.ctx, full_pred, c.ok, refine=True)}
-            alt_d.update(tie_reason(choice, cand, c.name))
+                     "params": params, "residuals": list(cand.residuals)}
+            alt_d.update(tie_reason(choice, cand, residual))
             alternatives.append(alt_d)
             seen.add((cand.effect, cand.channel))
     return alternatives
 
 
-def _grow_chain(c: _Channel, cfg: DiscrepancyConfig, n_channels: int,
-                progress: Callable[[str], None] | None,
-                findings: list[Finding], table: list[Candidate],
-                oof: dict[str, np.ndarray]) -> tuple[list[Effect], int]:
-    """Add the significant effects of one channel, best first; returns the chain and the
-    number of steps taken."""
-    ctx = c.ctx
-    cands = candidates(ctx, effects=cfg.effects, onset=cfg.onset,
-                       sensor_effects=cfg.sensor_effects)
-    by_label = {e.label: e for e in cands}
-    chain: list[Effect] = []
+def _fit_all(views: dict[str, _Channel], chain: list[Hypothesis],
+             trains: dict[str, np.ndarray], *, refine: bool = False,
+             params_out: list[list[dict[str, Any]]] | None = None) -> dict[str, np.ndarray]:
+    """Every residual's prediction with the chain fitted on ``trains``."""
+    preds = {v: c.ctx.yhat for v, c in views.items()}
+    for h in chain:
+        ps = _fit_in(views, h, preds, trains, refine=refine)
+        if params_out is not None:
+            params_out.append(ps)
+        for (v, eff), p in zip(h.members, ps):
+            if v in views:
+                preds[v] = eff.apply(views[v].ctx, preds[v], p)
+    return preds
+
+
+def _contenders(scored: list[tuple[Hypothesis, Candidate]], choice: Candidate,
+                alpha: float, limit: int = 12) -> list[tuple[Hypothesis, Candidate]]:
+    """The choice and the explanations the primary residuals cannot tell from it: within
+    one standard error of it, or not significantly worse (significant or not on their own)."""
+    out = []
+    for h, c in sorted(scored, key=lambda hc: float(np.nanmean(hc[1].mse_blocks))):
+        d = c.mse_blocks - choice.mse_blocks
+        d = d[np.isfinite(d)]
+        if c is choice or (d.size >= 3 and (
+                d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size)
+                or paired_p(c.mse_blocks, choice.mse_blocks) >= alpha)):
+            out.append((h, c))
+        if len(out) >= limit:
+            break
+    return out
+
+
+def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
+                progress: Callable[[str], None] | None, findings: list[Finding],
+                table: list[Candidate], oof: dict[str, dict[str, np.ndarray]]
+                ) -> tuple[list[Hypothesis], int]:
+    """Add the significant explanations, best first, to the model of every residual they
+    move; returns the chain and the number of steps taken."""
+    primary = {v: c.ctx for v, c in views.items() if not c.secondary}
+    second = {v: c.ctx for v, c in views.items() if c.secondary}
+    hs = hypotheses(primary, effects=cfg.effects, onset=cfg.onset,
+                    sensor_effects=cfg.sensor_effects, secondary=second)
+    measured = {c.ctx.signal for c in views.values()}
+    chain: list[Hypothesis] = []
     nit = 0
     for step in range(cfg.max_findings):
         nit += 1
-        ctx.cache.clear()
-        bases, before = _held_out_chain(c, chain)
-        mse_b = c.block_mse(before)
-        rmse_b = c.rmse(before)
+        for c in views.values():
+            c.ctx.cache.clear()
+        st = _held_out_chain(views, chain)
         if step == 0:
-            oof["before"] = before
-        scored = [sc for eff in cands if not any(e.label == eff.label for e in chain)
-                  if (sc := _score(c, eff, bases, before, rmse_b, mse_b)) is not None]
-        if not scored:
+            for v in primary:
+                oof.setdefault(v, {})["before"] = st.before[v]
+        todo = [h for h in hs if h not in chain]
+        sc = _Scoring()
+        _score_all(views, todo, st, set(primary), sc)
+        todo = [h for h in todo if id(h) in sc.mse_a and sc.mse_a[id(h)]]
+        if not todo:
             break
-        # Bonferroni over the effect shapes tested on the channel: an input sensor's error is
-        # one more carrier of a shape the channel's own candidates already test (its
-        # residual following the model's sensitivity to that sensor), a question of
-        # attribution among explanations rather than one more chance of a false discovery
-        m = max(1, sum(cand.channel == c.name for cand, _ in scored)) * n_channels
-        scored = [(Candidate(**{**cand.__dict__, "p_adjusted": min(1.0, cand.p_value * m)}), a)
-                  for cand, a in scored]
+        level = _noise_levels(views, st, sc, todo)
+        prim = {v: views[v] for v in primary}
+        score_b = _joint_blocks(prim, {v: st.mse_b[v] for v in prim}, level)
+        scored = [(h, _candidate(prim, h, st, sc, level, score_b)) for h in todo]
+        # Bonferroni over the effect shapes tested on the measured channels: an input
+        # sensor's error is one more carrier of a shape the channel's own candidates already
+        # test (its residual following the model's sensitivity to that sensor), a question
+        # of attribution among explanations rather than one more chance of a false discovery
+        m = max(1, sum(not h.signal or h.carrier in measured for h, _ in scored))
+        scored = [(h, replace(c, p_adjusted=min(1.0, c.p_value * m))) for h, c in scored]
         if step == 0:
-            table.extend(cand for cand, _ in scored)
+            table.extend(c for _, c in scored)
         # the choice is made among the significant explanations when there are any (a
         # better but unproven one is reported beside it as a tie)
-        pool = [(by_label[cand.label], cand) for cand, _ in scored
-                if cand.p_adjusted < cfg.alpha and cand.gain_pct >= cfg.min_gain_pct]
-        eff, choice = _one_se_choice(pool or [(by_label[cand.label], cand)
-                                              for cand, _ in scored], cfg.alpha)
+        pool = [(h, c) for h, c in scored
+                if c.p_adjusted < cfg.alpha and c.gain_pct >= cfg.min_gain_pct]
+        n_eff = _effective_n(views, st) if cfg.penalty else 0.0
+        h, choice = _one_se_choice(pool or scored, cfg.alpha, n_eff)
         sig = choice.p_adjusted < cfg.alpha and choice.gain_pct >= cfg.min_gain_pct
+        ties_from = scored
+        if sig and second:
+            # the leading explanations are checked on the secondary residuals too: scored
+            # jointly over every residual, the one that explains all of them is named
+            cont = _contenders(scored, choice, cfg.alpha)
+            _score_all(views, [hh for hh, _ in cont], st, set(views), sc)
+            level = _noise_levels(views, st, sc, [hh for hh, _ in cont])
+            every = _joint_blocks(views, {v: st.mse_b[v] for v in views}, level)
+            # two stages: the primary residuals say that something is wrong (the detection's
+            # p-value, carried by every contender), all residuals together say what
+            detect = choice.p_adjusted
+            ties_from = [(hh, replace(_candidate(views, hh, st, sc, level, every),
+                                      p_adjusted=detect)) for hh, _ in cont]
+            h, choice = _one_se_choice(ties_from, cfg.alpha, n_eff)
+        if progress and sig and second:
+            progress(f"step {step + 1}: leading explanations, held-out score (every residual in "
+                     "units of its noise level): " + ", ".join(
+                         f"{c.label} on {c.channel} {np.nanmean(c.mse_blocks):.4g}"
+                         for _, c in sorted(ties_from, key=lambda hc: np.nanmean(
+                             hc[1].mse_blocks))[:6]))
         if progress:
-            progress(f"{c.name} step {step + 1}: best {choice.label} gain "
+            progress(f"step {step + 1}: best {choice.label} on {choice.channel} gain "
                      f"{choice.gain_pct:.1f}% p_adj {choice.p_adjusted:.2g}"
                      f"{' (significant)' if sig else ''}")
         if not sig:
             break
-        alternatives = _alternatives(c, chain, scored, choice, by_label, cfg.alpha)
-        chain.append(eff)
-        oof[f"after_{step + 1}"] = next(a for cand, a in scored if cand is choice)
+        alternatives = _alternatives(views, chain, ties_from, choice, h.primary, cfg.alpha)
+        chain.append(h)
+        for v, a in sc.after[id(h)].items():
+            if v in primary:
+                oof.setdefault(v, {})[f"after_{step + 1}"] = a
         findings.append(Finding(rank=0, effect=choice.effect, label=choice.label,
-                                channel=choice.channel, model_channel=c.name, params={},
+                                channel=choice.channel, model_channel=h.primary, params={},
                                 rmse_before=choice.rmse_before,
                                 rmse_after=choice.rmse_after, gain_pct=choice.gain_pct,
                                 p_value=choice.p_value, p_adjusted=choice.p_adjusted,
                                 p_dm=choice.p_dm, significant=True,
                                 n_params=choice.n_params, step=step + 1,
-                                alternatives=alternatives))
+                                alternatives=alternatives, residuals=choice.residuals,
+                                shown_on=choice.shown_on,
+                                input_sensor=isinstance(_lead(h), SensorError)))
     return chain, nit
 
 
@@ -607,63 +829,84 @@ def _gain_magnitude(params: dict[str, Any]) -> float:
     return max(vals, default=0.0)
 
 
-def _refit(c: _Channel, chain: list[Effect], findings: list[Finding], info: dict[str, Any]
-           ) -> list[tuple[Effect, dict[str, Any]]]:
-    """The extension as saved: the chain refitted on every valid sample; the channel's
-    findings get these parameters."""
+def _relative_size(c: _Channel, eff: Effect, p: dict[str, Any], pred: np.ndarray,
+                   nxt: np.ndarray) -> float:
+    """The size of an effect against the reading it errs on (see :func:`_refit`)."""
     ctx = c.ctx
-    ctx.cache.clear()
-    _, params = fit_chain(ctx, chain, c.ok, refine=True)
-    ctx.cache.clear()
-    ctx.folds, ctx.fold_ids = None, {}
-    fitted = list(zip(chain, params))
+    if isinstance(eff, SensorError):
+        e, x = eff.error(ctx, p), ctx.sensor_reading(eff.sensor)
+        ok = c.ok & np.isfinite(e) & np.isfinite(x)
+        # a lag or dead time errs only while the reading moves: judged against how much it
+        # moves (its standard deviation), the other errors against the reading
+        timing = eff.kind in ("sensor_lag", "dead_time")
+        ref = (float(np.std(x[ok]) if timing else np.sqrt(np.mean(x[ok] ** 2)))
+               if ok.any() else 0.0)
+        e = e[ok]
+    else:
+        e, ref = (nxt - pred)[c.ok], float(np.sqrt(np.mean(ctx.y[c.ok] ** 2)))
+        e = e[np.isfinite(e)]
+    mag = 0.0
+    if e.size:
+        mag = float(np.max(np.abs(e)) if eff.id == "drift" else np.sqrt(np.mean(e ** 2)))
+    return mag / ref if ref > 0 else 0.0
+
+
+def _refit(views: dict[str, _Channel], chain: list[Hypothesis], findings: list[Finding],
+           summary: dict[str, dict[str, Any]]
+           ) -> dict[str, list[tuple[Effect, dict[str, Any]]]]:
+    """The extension as saved: the chain refitted on every valid sample, per residual; the
+    findings get the parameters of their first member.
+
+    A gain error below the relevance floor (every piece within MIN_GAIN_EFFECT of 1, the
+    order of a sensor's own accuracy class) is a real but negligible wander of the model,
+    not a deficiency worth naming: it stays in the candidate table, not among the findings.
+    Any other effect is held to the same floor by its size: the error it puts on a reading
+    (the channel's, or an input sensor's) must reach MIN_EFFECT_REL of that reading's RMS (a
+    sensor's accuracy class, 1 % of reading) in RMS over the record, a drift by what it
+    accumulates, an input sensor's lag or dead time against how much the reading moves;
+    smaller effects are real but negligible wanders of the model.
+    """
+    for c in views.values():
+        c.ctx.cache.clear()
+    oks = {v: c.ok for v, c in views.items()}
+    fitted: list[list[dict[str, Any]]] = []
+    _fit_all(views, chain, oks, refine=True, params_out=fitted)
+    for c in views.values():
+        c.ctx.cache.clear()
+        c.ctx.folds, c.ctx.fold_ids = None, {}
+    chains: dict[str, list[tuple[Effect, dict[str, Any]]]] = {v: [] for v in views}
+    preds = {v: c.ctx.yhat for v, c in views.items()}
+    size = []
+    for h, ps in zip(chain, fitted):
+        first = True
+        for (v, eff), p in zip(h.members, ps):
+            if v not in views:
+                continue
+            nxt = eff.apply(views[v].ctx, preds[v], p)
+            if first:
+                size.append(_relative_size(views[v], eff, p, preds[v], nxt))
+                first = False
+            chains[v].append((eff, p))
+            preds[v] = nxt
     for f_i, f in enumerate(findings):
-        if f.model_channel == c.name and not f.params:
-            findings[f_i] = Finding(**{**f.__dict__, "params": params[f.step - 1]})
-    # A gain error below the relevance floor (every piece within MIN_GAIN_EFFECT of 1, the
-    # order of a sensor's own accuracy class) is a real but negligible wander of the model,
-    # not a deficiency worth naming: it stays in the candidate table, not among the findings.
-    # Any other effect is held to the same floor by its size: the error it puts on a reading
-    # (the channel's, or an input sensor's) must reach MIN_EFFECT_REL of that reading's RMS
-    # (a sensor's accuracy class, 1 % of reading) in RMS over the record, a drift by what it
-    # accumulates, an input sensor's lag or dead time against how much the reading moves;
-    # smaller effects are real but negligible wanders of the model.
-    level = float(np.sqrt(np.mean(ctx.y[c.ok] ** 2)))
-    pred, size = ctx.yhat, []
-    for eff, p in fitted:
-        nxt = eff.apply(ctx, pred, p)
-        if isinstance(eff, SensorError):
-            e, x = eff.error(ctx, p), ctx.sensor_reading(eff.sensor)
-            ok = c.ok & np.isfinite(e) & np.isfinite(x)
-            # a lag or dead time errs only while the reading moves: judged against how much
-            # it moves (its standard deviation), the other errors against the reading
-            timing = eff.kind in ("sensor_lag", "dead_time")
-            ref = (float(np.std(x[ok]) if timing else np.sqrt(np.mean(x[ok] ** 2)))
-                   if ok.any() else 0.0)
-            e = e[ok]
-        else:
-            e, ref = (nxt - pred)[c.ok], level
-            e = e[np.isfinite(e)]
-        mag = 0.0
-        if e.size:
-            mag = float(np.max(np.abs(e)) if eff.id == "drift" else np.sqrt(np.mean(e ** 2)))
-        size.append(mag / ref if ref > 0 else 0.0)
-        pred = nxt
+        if not f.params and f.step <= len(fitted):
+            findings[f_i] = replace(f, params=fitted[f.step - 1][0])
     findings[:] = [f for f in findings
-                   if not (f.model_channel == c.name
-                           and ((f.effect == "gain_error"
-                                 and _gain_magnitude(f.params) < MIN_GAIN_EFFECT)
-                                or size[f.step - 1] < MIN_EFFECT_REL))]
-    final = apply_chain(ctx, fitted)
-    info["rmse_extended_in_sample"] = float(np.sqrt(np.mean((ctx.y - final)[c.ok] ** 2)))
-    return fitted
+                   if not ((f.effect == "gain_error"
+                            and _gain_magnitude(f.params) < MIN_GAIN_EFFECT)
+                           or size[f.step - 1] < MIN_EFFECT_REL)]
+    for v, c in views.items():
+        if v in summary and not c.secondary:
+            summary[v]["rmse_extended_in_sample"] = float(np.sqrt(np.mean(
+                c.err(preds[v])[c.ok] ** 2)))
+    return chains
 
 
 def _conclude(findings: list[Finding], table: list[Candidate],
               summary: dict[str, dict[str, Any]]) -> tuple[list[Finding], str, str, bool]:
     """Findings ranked, the verdict and its message, and whether any channel was analysed."""
     findings.sort(key=lambda f: -f.gain_pct)
-    findings = [Finding(**{**f.__dict__, "rank": i + 1}) for i, f in enumerate(findings)]
+    findings = [replace(f, rank=i + 1) for i, f in enumerate(findings)]
     table.sort(key=lambda c: -c.gain_pct)
     verdict, msg = _verdict(findings, table)
     skipped = {ch: c["status"] for ch, c in summary.items() if "status" in c}
@@ -678,53 +921,87 @@ def _conclude(findings: list[Finding], table: list[Candidate],
     return findings, verdict, msg, success
 
 
+def _views(contexts: dict[str, ChannelContext], secondary: dict[str, ChannelContext],
+           cfg: DiscrepancyConfig, summary: dict[str, dict[str, Any]]) -> dict[str, _Channel]:
+    """Blocks and folds of every residual: the same time blocks for all of them (a fold
+    holds out the same stretch of time in every residual)."""
+    spans = []
+    for ch, ctx in contexts.items():
+        ok = ctx.ok
+        n_ok = int(ok.sum())
+        summary[ch] = {"unit": ctx.unit, "n_samples": ctx.n, "n_valid": n_ok,
+                       "n_masked": ctx.n - n_ok}
+        if ctx.measured:
+            summary[ch]["measures"] = ctx.measured
+        if _n_blocks(ctx, cfg, dict(summary[ch])) is not None:
+            spans.append((float(ctx.t[ok][0]), float(ctx.t[ok][-1])))
+    views: dict[str, _Channel] = {}
+    if not spans:
+        for ch, ctx in contexts.items():
+            _n_blocks(ctx, cfg, summary[ch])
+        return views
+    t0, t1 = min(a for a, _ in spans), max(b for _, b in spans)
+    nb = cfg.n_blocks or int(np.clip(round((t1 - t0) / cfg.block_s), 24, 60))
+    every = [(ch, ctx, False) for ch, ctx in contexts.items()]
+    every += [(ch, ctx, True) for ch, ctx in secondary.items()]
+    for ch, ctx, sec in every:
+        info = summary.setdefault(ch, {"unit": ctx.unit, "n_samples": ctx.n,
+                                       "n_valid": int(ctx.ok.sum()),
+                                       "n_masked": ctx.n - int(ctx.ok.sum())})
+        ok = ctx.ok
+        info["n_blocks"] = nb
+        if int(ok.sum()) < 20 * nb:
+            info["status"] = f"too few valid samples ({int(ok.sum())}) for {nb} blocks"
+            continue
+        blk = make_blocks(ctx.t, ok, nb, span=(t0, t1))
+        trains, tests = _folds(ctx, cfg, blk, nb, ok)
+        views[ch] = _Channel(ch, ctx, blk, nb, trains, tests, ok, secondary=sec)
+        resid0 = ctx.pulsation(ctx.y - ctx.yhat)
+        info["rmse_baseline"] = float(np.sqrt(np.mean(resid0[ok] ** 2)))
+        info["bias_baseline"] = float(np.mean(resid0[ok]))
+        if sec:
+            info["checks_only"] = True
+    return views
+
+
 def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | None = None,
-            progress: Callable[[str], None] | None = None) -> DiscrepancyResult:
+            progress: Callable[[str], None] | None = None,
+            secondary: dict[str, ChannelContext] | None = None) -> DiscrepancyResult:
     """Find, name, extend and score the model's discrepancies in measured data.
 
     Parameters
     ----------
-    contexts : per channel, measured values, baseline prediction and explanations
-        (:func:`fdi_ros.core.discrepancy.context.build_contexts`).
+    contexts : per residual, measured values, baseline prediction and explanations
+        (:func:`fdi_ros.core.discrepancy.context.build_contexts`); all are analysed
+        together: an error of a signal is one hypothesis over every residual that reads the
+        signal (:mod:`.joint`).
     config : settings; see :class:`DiscrepancyConfig`.
     progress : optional callable(str) for status lines.
+    secondary : residuals that check the leading explanations without proposing any (e.g.
+        the pulsation of a channel whose mean-value effects are found on segment means).
 
     Returns
     -------
     DiscrepancyResult with the ranked findings (by held-out gain), the step-1 candidate table,
-    the verdict ("consistent" when no finding is significant, else "discrepant"), per channel
+    the verdict ("consistent" when no finding is significant, else "discrepant"), per residual
     the baseline RMSE, and the fitted extension chains (refitted on all valid samples).
     """
     cfg = config or DiscrepancyConfig()
     t0 = time.perf_counter()
     findings: list[Finding] = []
     table: list[Candidate] = []
-    chains: dict[str, list[tuple[Effect, dict[str, Any]]]] = {}
     summary: dict[str, dict[str, Any]] = {}
     oof: dict[str, dict[str, np.ndarray]] = {}
+    views = _views(contexts, secondary or {}, cfg, summary)
+    chains: dict[str, list[tuple[Effect, dict[str, Any]]]] = {ch: [] for ch in contexts}
     nit = 0
-    for ch, ctx in contexts.items():
-        ok = ctx.ok
-        n_ok = int(ok.sum())
-        info = summary[ch] = {"unit": ctx.unit, "n_samples": ctx.n, "n_valid": n_ok,
-                              "n_masked": ctx.n - n_ok}
-        chains[ch] = []
-        nb = _n_blocks(ctx, cfg, info)
-        if nb is None:
-            continue
-        blk = make_blocks(ctx.t, ok, nb)
-        trains, tests = _folds(ctx, cfg, blk, nb, ok)
-        c = _Channel(ch, ctx, blk, nb, trains, tests, ok)
-        resid0 = ctx.y - ctx.yhat
-        info["rmse_baseline"] = float(np.sqrt(np.mean(resid0[ok] ** 2)))
-        info["bias_baseline"] = float(np.mean(resid0[ok]))
-        oof[ch] = {}
-        chain, steps = _grow_chain(c, cfg, len(contexts), progress, findings, table, oof[ch])
-        if not oof[ch]:
-            del oof[ch]  # no step taken (max_findings = 0)
-        nit += steps
-        chains[ch] = _refit(c, chain, findings, info)
-    findings, verdict, msg, success = _conclude(findings, table, summary)
+    if any(not c.secondary for c in views.values()):
+        chain, nit = _grow_chain(views, cfg, progress, findings, table, oof)
+        chains.update({v: ch for v, ch in _refit(views, chain, findings, summary).items()
+                       if v in contexts})
+    findings, verdict, msg, success = _conclude(findings, table,
+                                                {k: v for k, v in summary.items()
+                                                 if k in contexts})
     return DiscrepancyResult(findings=findings, candidates=table, verdict=verdict, message=msg,
                              success=success, channels=summary, chains=chains,
                              n_blocks=max([c.get("n_blocks", 0) for c in summary.values()]

@@ -33,7 +33,18 @@ FORMAT = "fdi_ros.discrepancy.extended_model/1"
 
 # Baseline model types by name: the core's own, and those of the wings (found on first use).
 BASELINES: Kinds[Any] = Kinds("baseline model",
-                              {"speed_density": "fdi_ros.core.meanvalue:SpeedDensityModel"})
+                              {"speed_density": "fdi_ros.core.meanvalue:SpeedDensityModel",
+                               "throttle_flow": "fdi_ros.core.residualset:ThrottleFlowModel",
+                               "pressure_map": "fdi_ros.core.residualset:PressureMapModel",
+                               "residual_set": "fdi_ros.core.residualset:ResidualSet"})
+
+
+def signals_read(model: Any) -> tuple[str, ...]:
+    """Every measured signal a baseline model reads: its inputs and the signals its residuals
+    measure (``model.measures``, default: the channel of that name)."""
+    measures = dict(getattr(model, "measures", None) or {})
+    return tuple(dict.fromkeys(tuple(model.inputs)
+                               + tuple(measures.get(c, c) for c in model.channels)))
 
 
 def baseline_from_dict(d: dict[str, Any]) -> Any:
@@ -60,6 +71,14 @@ class ExtendedModel:
     @property
     def leaks(self) -> tuple[Any, ...]:
         return getattr(self.baseline, "leaks", ())
+
+    @property
+    def measures(self) -> dict[str, str]:
+        return dict(getattr(self.baseline, "measures", None) or {})
+
+    @property
+    def uses(self) -> dict[str, tuple[str, ...]]:
+        return dict(getattr(self.baseline, "uses", None) or {})
 
     def region(self, data: Measured) -> dict[str, np.ndarray]:
         return dict(self.baseline.region(data))

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from fdi_ros.core.discrepancy.model import ExtendedModel
+from fdi_ros.core.discrepancy.model import ExtendedModel, signals_read
 from fdi_ros.core.measured import Measured
 from fdi_ros.core.types import FeatureVector, ResidualVector
 
@@ -52,7 +52,7 @@ class ExtendedResidualModel:
     def residuals(self, fv: FeatureVector) -> ResidualVector:
         if not fv.valid:
             return self._invalid(fv, fv.status or "invalid features")
-        missing = [k for k in self.model.inputs + self.model.channels if k not in fv.names]
+        missing = [k for k in signals_read(self.model.baseline) if k not in fv.names]
         if missing:
             return self._invalid(fv, f"features lack {missing}")
         t = 0.5 * (fv.t_start + fv.t_end)
@@ -68,14 +68,15 @@ class ExtendedResidualModel:
         data = Measured(t=ts, signals=sig, units=dict(zip(fv.names, fv.units)),
                         source="features", mapped=tuple(fv.names))
         pred = self.model.predict(data)
+        measures = dict(getattr(self.model.baseline, "measures", None) or {})
         names, vals = [], []
         for ch in self.model.channels:
             names.append(f"r_{ch}")
-            vals.append(float(sig[ch][-1] - pred[ch][-1]))
+            vals.append(float(sig[measures.get(ch, ch)][-1] - pred[ch][-1]))
         v = np.array(vals)
         if not np.all(np.isfinite(v)):
             return self._invalid(fv, "outside the identified region")
-        units = tuple(fv.units[fv.names.index(c)] for c in self.model.channels)
+        units = tuple(fv.units[fv.names.index(measures.get(c, c))] for c in self.model.channels)
         return ResidualVector(model_id=self.model_id, index=fv.index, t=fv.t_end, valid=True,
                               status="", names=tuple(names), units=units, values=v,
                               norm=float(np.linalg.norm(v)))

@@ -47,6 +47,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                     help="null cases (nothing hidden); default N // 6, at least 1")
     st.add_argument("--seed", type=int, required=True, help="seed of the draw (replayable)")
     st.add_argument("--json", dest="selftest_json", required=True, help="output JSON file")
+    st.add_argument("--only", default=None,
+                    help="replay only these case indices of the draw (comma-separated)")
     st.add_argument("--quiet", dest="selftest_quiet", action="store_true")
     st.set_defaults(_run=run_selftest)
     parser.add_argument("--plant", choices=["diesel", "liu_ice"],
@@ -166,7 +168,9 @@ def run_selftest(args: argparse.Namespace) -> int:
         baseline = sc.diesel_baseline()
         DIESEL_CACHE.parent.mkdir(parents=True, exist_ok=True)
         DIESEL_CACHE.write_text(json.dumps(baseline.to_dict()))
-    out = selftest(args.n, args.seed, n_null=args.nulls, baseline=baseline, progress=say)
+    only = {int(x) for x in args.only.split(",")} if args.only else None
+    out = selftest(args.n, args.seed, n_null=args.nulls, baseline=baseline, progress=say,
+                   only=only)
     path = Path(args.selftest_json)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(out, indent=1, default=float))

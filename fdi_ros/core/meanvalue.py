@@ -173,8 +173,25 @@ class SpeedDensityModel:
         if self.storage:
             m = m + self.filling_regressors(data) @ np.asarray(self.volumes_l)
         if self.orders and self.harm_coef:
-            m = m + self.harmonic_regressors(data) @ np.asarray(self.harm_coef)
+            m = m + self._pulsation(data)
         return {self.channel: m}
+
+    def _pulsation(self, data: Measured) -> np.ndarray:
+        """``harmonic_regressors(data) @ harm_coef`` without the regressor matrix: per order
+        the amplitude maps ``poly @ a_k``, ``poly @ b_k`` times cos and sin."""
+        if data.alpha is None:
+            raise ValueError("this model predicts the crank-angle pulsation: the measured data "
+                             "needs a crank angle (alpha)")
+        nz, pz = self._z(data)
+        poly = _basis(nz, pz, self.harmonic_degree)
+        k = poly.shape[1]
+        c = np.asarray(self.harm_coef).reshape(len(self.orders), 2, k)
+        amp = poly @ c.reshape(-1, k).T  # (N, 2 * orders): a_1, b_1, a_2, b_2, ...
+        out = np.zeros(data.n_samples)
+        for i, order in enumerate(self.orders):
+            th = 2.0 * np.pi * order * data.alpha / 180.0
+            out += amp[:, 2 * i] * np.cos(th) + amp[:, 2 * i + 1] * np.sin(th)
+        return out
 
     # --- identification and persistence -----------------------------------------------------
     def fit(self, data: Measured | list[Measured]) -> SpeedDensityModel:

@@ -97,6 +97,7 @@ def pulsation_views(data: Measured, model: Any) -> dict[str, ChannelContext]:
     for ch, ctx in build_contexts(data, model).items():
         ctx.pulse = seg
         ctx.measured = ctx.signal
+        ctx.quantum = 0.005  # lags and dead times to 0.5 %: a check, not a fit
         out[f"{ch} (pulsation)"] = ctx
     return out
 

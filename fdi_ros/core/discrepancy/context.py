@@ -18,6 +18,7 @@ from fdi_ros.core.constants import R_AIR
 from fdi_ros.core.measured import Measured
 
 KAPPA_AIR = 1.4
+MAX_RESPONSES = 96  # exact sensor-error predictions kept per context (memory bound)
 
 
 @dataclass(frozen=True)
@@ -134,6 +135,7 @@ class ChannelContext:
     # errors judged with the mean of every 180 deg CA segment removed (the pulsation view of
     # crank-resolved data); ``pulse`` holds the segment index of every sample
     pulse: np.ndarray | None = field(default=None, repr=False)
+    quantum: float = 0.0  # relative step of the lag and dead-time values the model is re-run at
 
     @property
     def signal(self) -> str:
@@ -165,6 +167,10 @@ class ChannelContext:
         return self._corrected(sensor, "shift", delay_s)
 
     def _corrected(self, sensor: str, how: str, v: float) -> np.ndarray:
+        if self.quantum > 0 and v > 0:
+            # a view that only checks: values within a fraction ``quantum`` of each other
+            # (the folds' fits) share one re-run of the model
+            v = float(np.exp(np.round(np.log(v) / self.quantum) * self.quantum))
         key = (sensor, how, round(float(v), 9))
         if key not in self.responses:
             if self.source is None:
@@ -204,6 +210,55 @@ class ChannelContext:
             data, model = self.source
             self.responses["base"] = np.asarray(model.predict(data)[self.channel], float)
         return self.responses["base"]
+
+    def sensor_error_response(self, sensor: str, kind: str, value: float,
+                              onset_s: float | None = None, column: str = "", *,
+                              keep: bool = True) -> np.ndarray:
+        """``yhat(x_true) - yhat(x)``: the prediction from the reading ``x`` of ``sensor`` with
+        an error of ``kind`` and size ``value`` removed (from ``onset_s`` on), the model re-run
+        exactly, minus the prediction. Kinds: ``offset`` (x - value), ``gain_error``
+        (x / value), ``drift`` (x - value (t - t_ref)), ``input_dependence`` (x - value z, z
+        the measured ``column`` standardised). Cached per value (``keep``), at most
+        ``MAX_RESPONSES`` of them; views with a ``quantum`` round the value (gains: their
+        departure from 1) to that relative step and the onset to 0.1 s."""
+        if self.source is None:
+            raise ValueError(f"no model behind channel {self.channel}")
+        v, on = float(value), onset_s
+        if self.quantum > 0:
+            d = v - 1.0 if kind == "gain_error" else v
+            if d != 0.0:
+                d = float(np.sign(d) * np.exp(np.round(np.log(abs(d)) / self.quantum)
+                                               * self.quantum))
+            v = d + 1.0 if kind == "gain_error" else d
+            on = None if on is None else round(float(on), 1)
+        key = ("error", sensor, kind, round(v, 12), None if on is None else round(on, 6),
+               column)
+        if key in self.responses:
+            return self.responses[key]
+        data, model = self.source
+        x = self.sensor_reading(sensor)
+        if kind == "offset":
+            xt = x - v
+        elif kind == "gain_error":
+            xt = x / v
+        elif kind == "drift":
+            xt = x - v * (data.t - self.t_ref)
+        elif kind == "input_dependence":
+            z = np.asarray(data[column], float)
+            xt = x - v * np.where(np.isfinite(z), (z - np.nanmean(z)) / (np.nanstd(z) or 1.0),
+                                  0.0)
+        else:
+            raise ValueError(f"no exact sensor error of kind {kind!r}")
+        if on is not None:
+            xt = np.where(data.t >= on, xt, x)
+        out = (np.asarray(model.predict(_replaced(data, sensor, xt))[self.channel], float)
+               - self.sensor_base())
+        if keep:
+            errors = [k for k in self.responses if isinstance(k, tuple) and k[0] == "error"]
+            for k in errors[: max(0, len(errors) - MAX_RESPONSES + 1)]:
+                del self.responses[k]
+            self.responses[key] = out
+        return out
 
     def sensor_response(self, sensor: str, direction: str) -> np.ndarray:
         """How this channel's prediction moves per unit error of an input sensor.

@@ -35,6 +35,7 @@ from scipy.optimize import minimize_scalar
 from scipy.signal import lfilter
 
 from fdi_ros.core.discrepancy.context import ChannelContext, smooth_derivative
+from fdi_ros.core.discrepancy.timing import estimate_delay
 
 CATALOGUE = ("input_dependence", "missing_harmonic", "sensor_lag", "dead_time", "gain_error",
              "offset", "drift", "leak", "local_region")
@@ -504,6 +505,22 @@ class DeadTime(_Filter):
         # the delay (period of the pulsation), a coarse grid misses
         return 0.0, hi, False, int(min(600, max(12, hi / ctx.dt + 1)))
 
+    def fit(self, ctx: ChannelContext, base: np.ndarray, train: np.ndarray, *,
+            refine: bool = False) -> dict[str, Any]:
+        """The delay of the measurement behind the prediction from the two signals
+        (:func:`~fdi_ros.core.discrepancy.timing.estimate_delay`: cross-correlation, then the
+        cross-spectrum phase for the fraction of a sample), on the training samples only
+        (each contiguous run of them on its own); a grid search of the training error when
+        the two are not clearly correlated."""
+        _, hi, _, _ = self._grid(ctx)
+        m = _train_mask(ctx, base, train)
+        cut = np.r_[False, (np.diff(m.astype(int)) != 0) | (np.diff(ctx.segment) != 0)]
+        est = estimate_delay(np.where(m, ctx.y, np.nan), np.where(m, base, np.nan), ctx.t,
+                             segment=np.cumsum(cut), max_delay_s=hi)
+        if est.success and est.peak_corr >= 0.5:
+            return {self.key: float(np.clip(est.delay_s, 0.0, hi))}
+        return super().fit(ctx, base, train, refine=refine)
+
 
 @dataclass(frozen=True)
 class InputDependence(Effect):
@@ -726,7 +743,10 @@ class SensorError(Effect):
             b, _ = _fit_scalar(ctx.y - base, g, ctx.t, after, onset=False, nonneg=False)
         else:
             b, t_on = _fit_scalar(ctx.y - base, g, ctx.t, m, onset=self.onset, nonneg=False)
-        out: dict[str, Any] = {key: float(value(b)), "beta": float(b), "sensor": self.sensor}
+        v = self._exact_size(ctx, base, m if t_on is None else m & (ctx.t >= t_on),
+                             float(value(b)), t_on, 3 if refine else 1)
+        b = 1.0 / v - 1.0 if self.kind == "gain_error" else -v
+        out: dict[str, Any] = {key: v, "beta": float(b), "sensor": self.sensor}
         if self.onset:
             out["onset_s"] = t_on
         if self.kind == "drift":
@@ -735,12 +755,40 @@ class SensorError(Effect):
             out["input"] = self.column
         return out
 
+    def _exact_size(self, ctx: ChannelContext, base: np.ndarray, m: np.ndarray, v: float,
+                    onset: float | None, iterations: int) -> float:
+        """Gauss-Newton steps from the linearised size ``v`` on the exact prediction (the
+        model re-run with the reading corrected): a gain of 10 % of an input moves a curved
+        map by more than its slope says."""
+        if not np.isfinite(v) or (self.kind == "gain_error" and v <= 0):
+            return v
+        r = ctx.y - base
+        for _ in range(iterations):
+            p0 = ctx.sensor_error_response(self.sensor, self.kind, v, onset, self.column,
+                                           keep=False)
+            dv = 1e-3 * max(abs(v), 1e-6)
+            p1 = ctx.sensor_error_response(self.sensor, self.kind, v + dv, onset, self.column,
+                                           keep=False)
+            jac = (p1 - p0) / dv
+            ok = m & np.isfinite(jac) & np.isfinite(p0) & np.isfinite(r)
+            den = float(np.dot(jac[ok], jac[ok]))
+            if not ok.any() or den <= 0.0:
+                break
+            step = float(np.dot(jac[ok], (r - p0)[ok])) / den
+            if self.kind == "gain_error":
+                step = float(np.clip(step, -0.5 * v, 0.5 * v))
+            v += step
+            if abs(step) <= 1e-6 * max(abs(v), 1e-9):
+                break
+        return float(v)
+
     def apply(self, ctx: ChannelContext, base: np.ndarray, params: dict[str, Any]
               ) -> np.ndarray:
+        key = SENSOR_KINDS[self.kind][1]
         if self.kind in ("sensor_lag", "dead_time"):
-            return self._shifted(ctx, base, float(params[SENSOR_KINDS[self.kind][1]]))
-        g = ctx.sensor_response(self.sensor, self._direction())
-        corr = params["beta"] * g * _step(ctx.t, params.get("onset_s"))
+            return self._shifted(ctx, base, float(params[key]))
+        corr = ctx.sensor_error_response(self.sensor, self.kind, float(params[key]),
+                                         params.get("onset_s"), self.column)
         return base + np.where(np.isfinite(corr), corr, 0.0)
 
     def error(self, ctx: ChannelContext, params: dict[str, Any]) -> np.ndarray:

@@ -774,7 +774,7 @@ def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
         h, choice = _one_se_choice(pool or scored, cfg.alpha, n_eff)
         sig = choice.p_adjusted < cfg.alpha and choice.gain_pct >= cfg.min_gain_pct
         ties_from = scored
-        if sig and second:
+        if sig and second and _relevant(views, chain, h):
             # the leading explanations are checked on the secondary residuals too: scored
             # jointly over every residual, the one that explains all of them is named
             cont = _contenders(scored, choice, cfg.alpha)
@@ -849,6 +849,20 @@ def _relative_size(c: _Channel, eff: Effect, p: dict[str, Any], pred: np.ndarray
     if e.size:
         mag = float(np.max(np.abs(e)) if eff.id == "drift" else np.sqrt(np.mean(e ** 2)))
     return mag / ref if ref > 0 else 0.0
+
+
+def _relevant(views: dict[str, _Channel], chain: list[Hypothesis], h: Hypothesis) -> bool:
+    """Whether ``h``, fitted on every valid sample on top of the chain, reaches the relevance
+    floor of :func:`_refit` (a detection whose best explanation is a negligible wander is not
+    handed on to the attribution among the other residuals: it stays the model's wander)."""
+    oks = {v: c.ok for v, c in views.items()}
+    preds = _fit_all(views, chain, oks)
+    ps = _fit_in(views, h, preds, oks)
+    v0, e0 = h.members[0]
+    if e0.id == "gain_error" and _gain_magnitude(ps[0]) < MIN_GAIN_EFFECT:
+        return False
+    nxt = e0.apply(views[v0].ctx, preds[v0], ps[0])
+    return _relative_size(views[v0], e0, ps[0], preds[v0], nxt) >= MIN_EFFECT_REL
 
 
 def _refit(views: dict[str, _Channel], chain: list[Hypothesis], findings: list[Finding],

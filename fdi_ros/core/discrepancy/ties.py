@@ -158,19 +158,31 @@ def input_gain_ties(data: Measured, model: Any, channel: str, gain: float, onset
 
 
 def tie_reason(choice: Any, other: Any, model_channel: str) -> dict[str, str]:
-    """Why two candidates (``choice``, ``other``: objects with ``effect``, ``label`` and
-    ``channel``) explain ``model_channel``'s residual alike, and which measurement would tell
-    them apart."""
+    """Why two candidates (``choice``, ``other``: objects with ``effect``, ``label``,
+    ``channel`` and optionally ``residuals``, the residuals each moves) explain the data
+    alike, and which measurement would tell them apart."""
     a, b = choice.channel, other.channel
     lag_pair = {choice.effect, other.effect} == {"sensor_lag", "dead_time"}
+    ra = set(getattr(choice, "residuals", ()) or (model_channel,))
+    rb = set(getattr(other, "residuals", ()) or (model_channel,))
     if a != b:
-        sensors = [s for s in (a, b) if s != model_channel]
-        why = (f"{other.label} ({b}) moves the {model_channel} residual as {choice.label} "
-               f"({a}) does: the model predicts {model_channel} from "
-               f"{' and '.join(sensors)}, and one residual cannot prove which signal is "
-               "wrong (held-out error within one standard error)")
-        sep = (f"a second relation that uses {a} but not {b}, or {b} but not {a} (a redundant "
-               f"sensor, or a model of another component that reads one of them)")
+        if ra == rb:
+            shown = " and ".join(sorted(ra))
+            why = (f"{other.label} ({b}) moves the {shown} residual{'s' if len(ra) > 1 else ''}"
+                   f" as {choice.label} ({a}) does: every relation here reads both signals "
+                   "or neither, so the residuals cannot prove which signal is wrong "
+                   "(held-out error within one standard error, or not significantly worse)")
+            sep = (f"a relation that reads {a} but not {b}, or {b} but not {a} (a redundant "
+                   f"sensor, or a model of another component that reads one of them)")
+        else:
+            only = sorted(ra ^ rb)
+            why = (f"{other.label} ({b}) moves the residuals {sorted(rb)}, {choice.label} "
+                   f"({a}) moves {sorted(ra)}; where only one of them acts ({only}) the two "
+                   "are not told apart on these data (the held-out error differs by less than "
+                   "the blocks' scatter)")
+            sep = (f"operating points where the {' and '.join(only)} relation responds "
+                   f"more strongly to {a} or {b}, or a relation that reads {a} but not {b}, "
+                   f"or {b} but not {a}")
     elif lag_pair:
         why = (f"on {a} a first-order lag tau and a dead time d = tau both make a slowly "
                "varying reading trail the truth by about tau dx/dt; they differ only in "

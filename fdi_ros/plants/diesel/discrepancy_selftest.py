@@ -96,15 +96,26 @@ def draw_case(rng: np.random.Generator, effect: str | None, channel: str = "maf"
     return {key: sign * size}
 
 
-def _extra_columns(rng: np.random.Generator, t: np.ndarray, n_cols: int) -> dict:
-    cols = {}
-    for i in range(n_cols):
+def _extra_columns(rng: np.random.Generator, n_cols: int) -> list[dict]:
+    """Random smooth shapes of the extra measured columns: per column its range and its sum
+    of sinusoids (drawn in the order :func:`~.discrepancy_scenarios._smooth_random` draws)."""
+    cols = []
+    for _ in range(n_cols):
         lo = float(rng.uniform(-50.0, 300.0))
-        cols[f"x{i + 1}"] = sc._smooth_random(rng, t, lo, lo + float(rng.uniform(1.0, 40.0)),
-                                              periods=(float(rng.uniform(4.0, 15.0)),
-                                                       float(rng.uniform(30.0, 150.0))),
-                                              n_waves=int(rng.integers(2, 6)))
+        hi = lo + float(rng.uniform(1.0, 40.0))
+        periods = (float(rng.uniform(4.0, 15.0)), float(rng.uniform(30.0, 150.0)))
+        waves = [(float(rng.uniform(*periods)), float(rng.uniform(0.5, 1.0)),
+                  float(rng.uniform(0, 2 * np.pi))) for _ in range(int(rng.integers(2, 6)))]
+        cols.append({"lo": lo, "hi": hi, "waves": waves})
     return cols
+
+
+def _column(t: np.ndarray, spec: dict) -> np.ndarray:
+    x = np.zeros_like(t)
+    for per, amp, ph in spec["waves"]:
+        x += amp * np.sin(2 * np.pi * t / per + ph)
+    x = (x - x.min()) / max(x.max() - x.min(), 1e-12)
+    return np.asarray(spec["lo"] + (spec["hi"] - spec["lo"]) * x, float)
 
 
 def headline(effect: str, params: dict) -> float | None:
@@ -169,44 +180,60 @@ class CaseResult:
                 "param_rel_error": self.param_rel_error, "seconds": self.seconds}
 
 
-def run_case(index: int, rng: np.random.Generator, baseline, effect: str | None, *,
-             duration_s: float = 60.0) -> CaseResult:
-    """Draw, hide, analyse and judge one case."""
-    from fdi_ros.core.discrepancy import discover
-    from fdi_ros.core.measured import Measured
-    from fdi_ros.core.types import FaultEvent
-
-    t0 = time.perf_counter()
-    chans = (channels_for(effect, tuple(baseline.channels)) if effect
-             else list(baseline.channels))
+def draw_spec(index: int, rng: np.random.Generator, channels: tuple[str, ...],
+              effect: str | None) -> dict:
+    """Everything random about one case (replayable: :func:`run_spec` runs it)."""
+    chans = channels_for(effect, channels) if effect else list(channels)
     channel = str(rng.choice(chans))
     params = draw_case(rng, effect, channel)
     seed = int(rng.integers(2000, 10**6))
     start = float(rng.uniform(0.0, 20.0))
+    profile_seed = int(rng.integers(10**6))
+    extra = _extra_columns(rng, int(rng.integers(1, 4)))
+    if effect == "input_dependence":
+        params["input"] = str(rng.choice([f"x{i + 1}" for i in range(len(extra))]))
+    return {"index": index, "effect": effect, "channel": channel, "params": params,
+            "seed": seed, "start": start, "profile_seed": profile_seed, "extra": extra}
+
+
+def case_record(spec: dict, *, duration_s: float = 60.0):
+    """The measured record of a case: a plant run with the effect hidden in it."""
+    from fdi_ros.core.measured import Measured
+    from fdi_ros.core.types import FaultEvent
+
+    effect, params = spec["effect"], spec["params"]
     faults = []
     if effect == "leak":
         faults = [FaultEvent(t=0.0, fault="leak_ic_engine", size=params["diameter_mm"],
                              size_unit="mm")]
-    rec = sc.plant_record(seed, duration_s=start + duration_s, faults=faults,
-                          profile_seed=int(rng.integers(10**6)))
+    start = spec["start"]
+    rec = sc.plant_record(spec["seed"], duration_s=start + duration_s, faults=faults,
+                          profile_seed=spec["profile_seed"])
     rec = rec.window(start, start + duration_s)
-    extra = _extra_columns(rng, rec.t, int(rng.integers(1, 4)))
+    extra = {f"x{i + 1}": _column(rec.t, c) for i, c in enumerate(spec["extra"])}
     sig = {k: v for k, v in rec.signals.items() if k not in ("T_amb", "u_aux")}
     units = {k: v for k, v in rec.units.items() if k not in ("T_amb", "u_aux")}
     sig.update(extra)
     units.update(dict.fromkeys(extra, "1"))
     rec = Measured(t=rec.t, signals=sig, units=units, alpha=rec.alpha, segment=rec.segment,
-                   source=f"selftest case {index}", mapped=rec.mapped)
-    if effect == "input_dependence":
-        params["input"] = str(rng.choice(sorted(extra)))
+                   source=f"selftest case {spec['index']}", mapped=rec.mapped)
     if effect not in (None, "leak"):
-        rec = sc.hide(rec, effect, params, channel=channel)
-    res, _ = discover(rec, baseline)
+        rec = sc.hide(rec, effect, params, channel=spec["channel"])
+    return rec
+
+
+def run_spec(spec: dict, baseline, *, duration_s: float = 60.0) -> CaseResult:
+    """Hide, analyse and judge one drawn case."""
+    from fdi_ros.core.discrepancy import discover
+
+    t0 = time.perf_counter()
+    params = spec["params"]
+    res, _ = discover(case_record(spec, duration_s=duration_s), baseline)
     top = res.findings[0] if res.findings else None
     tie = [a["effect"] for a in top.alternatives] if top else []
     tie_labels = [a["label"] for a in top.alternatives] if top else []
     tie_channels = [a.get("channel", top.channel) for a in top.alternatives] if top else []
-    return CaseResult(index=index, effect=effect, channel=channel,
+    return CaseResult(index=spec["index"], effect=spec["effect"], channel=spec["channel"],
                       truth={k: (list(v) if isinstance(v, tuple) else v)
                              for k, v in params.items()},
                       found=top.effect if top else None,
@@ -214,6 +241,13 @@ def run_case(index: int, rng: np.random.Generator, baseline, effect: str | None,
                       found_params=dict(top.params) if top else {}, tie=tie,
                       tie_labels=tie_labels, tie_channels=tie_channels,
                       seconds=time.perf_counter() - t0)
+
+
+def run_case(index: int, rng: np.random.Generator, baseline, effect: str | None, *,
+             duration_s: float = 60.0) -> CaseResult:
+    """Draw, hide, analyse and judge one case."""
+    spec = draw_spec(index, rng, tuple(baseline.channels), effect)
+    return run_spec(spec, baseline, duration_s=duration_s)
 
 
 def summarise(cases: list[CaseResult], *, param_tol: float = 0.3) -> dict:
@@ -251,8 +285,10 @@ def summarise(cases: list[CaseResult], *, param_tol: float = 0.3) -> dict:
 
 
 def run_selftest(n: int, seed: int, *, n_null: int | None = None, baseline=None,
-                 progress=None, duration_s: float = 60.0) -> dict:
-    """``n`` random effect cases plus ``n_null`` null cases (default ``max(1, n // 6)``)."""
+                 progress=None, duration_s: float = 60.0,
+                 only: set[int] | None = None) -> dict:
+    """``n`` random effect cases plus ``n_null`` null cases (default ``max(1, n // 6)``);
+    ``only``: run just these case indices of the same draw (a replay)."""
     if n < 0:
         raise ValueError("n must be >= 0")
     n_null = max(1, n // 6) if n_null is None else n_null
@@ -265,7 +301,10 @@ def run_selftest(n: int, seed: int, *, n_null: int | None = None, baseline=None,
     rng.shuffle(kinds)
     cases = []
     for i, kind in enumerate(kinds):
-        c = run_case(i, rng, baseline, kind, duration_s=duration_s)
+        spec = draw_spec(i, rng, tuple(baseline.channels), kind)
+        if only is not None and i not in only:
+            continue
+        c = run_spec(spec, baseline, duration_s=duration_s)
         cases.append(c)
         if progress:
             progress(f"case {i + 1}/{len(kinds)}: hidden {c.effect or 'nothing'} on "

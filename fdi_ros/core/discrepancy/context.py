@@ -234,7 +234,8 @@ class ChannelContext:
         key = ("error", sensor, kind, round(v, 12), None if on is None else round(on, 6),
                column)
         if key in self.responses:
-            return self.responses[key]
+            kept: np.ndarray = self.responses[key]
+            return kept
         data, model = self.source
         x = self.sensor_reading(sensor)
         if kind == "offset":
@@ -251,8 +252,8 @@ class ChannelContext:
             raise ValueError(f"no exact sensor error of kind {kind!r}")
         if on is not None:
             xt = np.where(data.t >= on, xt, x)
-        out = (np.asarray(model.predict(_replaced(data, sensor, xt))[self.channel], float)
-               - self.sensor_base())
+        out: np.ndarray = (np.asarray(model.predict(_replaced(data, sensor, xt))[self.channel],
+                                      float) - self.sensor_base())
         if keep:
             errors = [k for k in self.responses if isinstance(k, tuple) and k[0] == "error"]
             for k in errors[: max(0, len(errors) - MAX_RESPONSES + 1)]:

@@ -216,16 +216,17 @@ class PressureMapModel(_Saved):
         z, out = _scaled(data, self.regressors, ranges, self.margin)
         A = poly_basis(z, self.degree)
         if lag_s > 0:
-            from fdi_ros.core.discrepancy.effects import lowpass
-
-            A = np.stack([lowpass(a, data.t, data.segment, lag_s) for a in A.T], axis=1)
+            A = np.stack([_lag(a, data, lag_s) for a in A.T], axis=1)
         return A, out
 
     def predict(self, data: Measured) -> dict[str, np.ndarray]:
         if not self.coef:
             raise ValueError("the pressure map is not identified yet (call fit)")
-        A, out = self._basis(data, self.ranges, self.lag_s)
-        p = np.asarray(data[self.reference], float) * np.exp(A @ np.asarray(self.coef))
+        z, out = _scaled(data, self.regressors, self.ranges, self.margin)
+        ln_ratio = poly_basis(z, self.degree) @ np.asarray(self.coef)
+        if self.lag_s > 0:  # the lag is linear: lag the map's output, not every regressor
+            ln_ratio = _lag(ln_ratio, data, self.lag_s)
+        p = np.asarray(data[self.reference], float) * np.exp(ln_ratio)
         return {self.channel: np.where(out, np.nan, p)}
 
     def fit(self, data: Measured | list[Measured]) -> PressureMapModel:
@@ -255,6 +256,12 @@ class PressureMapModel(_Saved):
         return PressureMapModel(**{**self.to_params(), "coef": tuple(float(v) for v in best[2]),
                                    "ranges": ranges, "lag_s": best[1]})
 
+
+
+def _lag(x: np.ndarray, data: Measured, tau_s: float) -> np.ndarray:
+    from fdi_ros.core.discrepancy.effects import lowpass
+
+    return lowpass(x, data.t, data.segment, tau_s)
 
 
 def _name(m: Any) -> str:
@@ -303,6 +310,11 @@ class ResidualSet:
 
     def region(self, data: Measured) -> dict[str, np.ndarray]:
         return dict(self.models[0].region(data))
+
+    def model_of(self, channel: str) -> Any:
+        """The member model that predicts residual ``channel`` (re-running one relation is
+        enough to see how an input's error moves its residual)."""
+        return next(m for m in self.models if _name(m) == channel)
 
     def predict(self, data: Measured) -> dict[str, np.ndarray]:
         out: dict[str, np.ndarray] = {}

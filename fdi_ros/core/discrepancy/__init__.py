@@ -149,14 +149,15 @@ def _discover(data: Measured, model: Any, *, config: DiscrepancyConfig | None = 
     res_a = analyse(on_top(build_contexts(means, mean_model, sensors=True), res_1),
                     config=cfg_a, progress=progress,
                     secondary=on_top(pulsation_views(data, model), res_1))
-    if res_1 is not None and res_1.findings and any(_is_sensor(f) for f in res_a.findings):
-        # Joint check: an input sensor's error moves every part of the prediction made from
-        # that input, the pulsation included. When the sensor error found on the means alone
-        # also explains the crank-resolved view, the lag or dead time found there first was
-        # its echo: the sensor error is kept, the echo dropped.
+    if res_1 is not None and res_1.findings and res_a.findings:
+        # Joint check: a sensor's error moves every part of the prediction made from that
+        # sensor, the pulsation included (a speed sensor's gain shifts the pulsation's phase
+        # as a dead time would). When the explanation found on the means alone (with the
+        # pulsation as its check) also explains the crank-resolved view, the lag or dead time
+        # found there first was its echo: the mean-value explanation is kept, the echo dropped.
         alone = analyse(build_contexts(means, mean_model, sensors=True), config=cfg_a,
                         progress=progress, secondary=pulsation_views(data, model))
-        if alone.findings and _is_sensor(alone.findings[0]):
+        if alone.findings:
             again = analyse(on_top(build_contexts(data, model), alone),
                             config=replace(cfg, effects=stage1, max_findings=1),
                             progress=progress)

@@ -9,6 +9,7 @@ time derivatives of all measured signals), the operating-region coordinates of t
 
 from __future__ import annotations
 
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -61,10 +62,11 @@ def orifice_flux(p_up: np.ndarray, T_up: np.ndarray, p_down: np.ndarray,
     held at its critical value below the choking ratio ``(2/(kappa+1))^(kappa/(kappa-1))``.
     """
     pr_crit = (2.0 / (kappa + 1.0)) ** (kappa / (kappa - 1.0))
-    pr = np.clip(p_down / p_up, pr_crit, 1.0)
-    psi = np.sqrt(np.maximum(2.0 * kappa / (kappa - 1.0)
-                             * (pr ** (2.0 / kappa) - pr ** ((kappa + 1.0) / kappa)), 0.0))
-    return np.asarray(p_up / np.sqrt(R_AIR * T_up) * psi, float)
+    with np.errstate(invalid="ignore", divide="ignore"):  # NaN where T or p is not physical
+        pr = np.clip(p_down / p_up, pr_crit, 1.0)
+        psi = np.sqrt(np.maximum(2.0 * kappa / (kappa - 1.0)
+                                 * (pr ** (2.0 / kappa) - pr ** ((kappa + 1.0) / kappa)), 0.0))
+        return np.asarray(p_up / np.sqrt(R_AIR * T_up) * psi, float)
 
 
 def leak_regressor(data: Measured, spec: LeakSpec) -> np.ndarray:
@@ -81,13 +83,33 @@ def leak_regressor(data: Measured, spec: LeakSpec) -> np.ndarray:
     return q
 
 
+_DERIVATIVES: OrderedDict[tuple[int, int, int, float], tuple[Any, ...]] = OrderedDict()
+
+
 def smooth_derivative(x: np.ndarray, t: np.ndarray, segment: np.ndarray,
                       window_s: float) -> np.ndarray:
     """d x / d t per segment after a centred moving average of about ``window_s``.
 
     NaN samples stay NaN (and make their neighbourhood NaN): a derivative across a missing
-    sample would be a guess. Near the segment ends the window is shortened.
+    sample would be a guess. Near the segment ends the window is shortened. The last few
+    results are remembered for the very same arrays (a model re-run with one input changed
+    differentiates the others again).
     """
+    key = (id(x), id(t), id(segment), float(window_s))
+    hit = _DERIVATIVES.get(key)
+    if hit is not None and hit[0] is x and hit[1] is t and hit[2] is segment:
+        _DERIVATIVES.move_to_end(key)
+        kept: np.ndarray = hit[3]
+        return kept
+    out = _smooth_derivative(x, t, segment, window_s)
+    _DERIVATIVES[key] = (x, t, segment, out)
+    while len(_DERIVATIVES) > 32:
+        _DERIVATIVES.popitem(last=False)
+    return out
+
+
+def _smooth_derivative(x: np.ndarray, t: np.ndarray, segment: np.ndarray,
+                       window_s: float) -> np.ndarray:
     out = np.full_like(x, np.nan, dtype=float)
     for s in np.unique(segment):
         idx = np.flatnonzero(segment == s)
@@ -136,6 +158,7 @@ class ChannelContext:
     # crank-resolved data); ``pulse`` holds the segment index of every sample
     pulse: np.ndarray | None = field(default=None, repr=False)
     quantum: float = 0.0  # relative step of the lag and dead-time values the model is re-run at
+    _errors: deque[Any] = field(default_factory=deque, repr=False)  # kept exact responses
 
     @property
     def signal(self) -> str:
@@ -255,9 +278,9 @@ class ChannelContext:
         out: np.ndarray = (np.asarray(model.predict(_replaced(data, sensor, xt))[self.channel],
                                       float) - self.sensor_base())
         if keep:
-            errors = [k for k in self.responses if isinstance(k, tuple) and k[0] == "error"]
-            for k in errors[: max(0, len(errors) - MAX_RESPONSES + 1)]:
-                del self.responses[k]
+            self._errors.append(key)
+            while len(self._errors) > MAX_RESPONSES:
+                self.responses.pop(self._errors.popleft(), None)
             self.responses[key] = out
         return out
 
@@ -315,6 +338,13 @@ class ChannelContext:
         return float(np.median(np.diff(self.t)))
 
 
+def _model_of(model: Any, channel: str) -> Any:
+    """What predicts ``channel``: the member of a set of relations (``model.model_of``), or
+    the model itself."""
+    pick = getattr(model, "model_of", None)
+    return pick(channel) if callable(pick) else model
+
+
 def _replaced(data: Measured, name: str, x: np.ndarray) -> Measured:
     sig = dict(data.signals)
     sig[name] = x
@@ -370,7 +400,7 @@ def build_contexts(data: Measured, model: Any, *, derivative_window_s: float = 0
                                  alpha=data.alpha, leak_q=q, leak=spec,
                                  t_ref=float(data.t[0] if t_ref is None else t_ref),
                                  sensors=readable if sensors else (),
-                                 source=(data, model),
+                                 source=(data, _model_of(model, ch)),
                                  measured=sig_name if sig_name != ch else "", uses=readable)
     if not out:
         raise ValueError(f"the measured data has none of the model's channels {model.channels} "

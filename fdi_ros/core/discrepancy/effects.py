@@ -744,7 +744,7 @@ class SensorError(Effect):
         else:
             b, t_on = _fit_scalar(ctx.y - base, g, ctx.t, m, onset=self.onset, nonneg=False)
         v = self._exact_size(ctx, base, m if t_on is None else m & (ctx.t >= t_on),
-                             float(value(b)), t_on, 3 if refine else 1)
+                             float(value(b)), t_on, g, 4 if refine else 2)
         b = 1.0 / v - 1.0 if self.kind == "gain_error" else -v
         out: dict[str, Any] = {key: v, "beta": float(b), "sensor": self.sensor}
         if self.onset:
@@ -756,20 +756,27 @@ class SensorError(Effect):
         return out
 
     def _exact_size(self, ctx: ChannelContext, base: np.ndarray, m: np.ndarray, v: float,
-                    onset: float | None, iterations: int) -> float:
-        """Gauss-Newton steps from the linearised size ``v`` on the exact prediction (the
-        model re-run with the reading corrected): a gain of 10 % of an input moves a curved
-        map by more than its slope says."""
+                    onset: float | None, slope: np.ndarray, iterations: int) -> float:
+        """Newton steps from the linearised size ``v`` on the exact prediction (the model
+        re-run with the reading corrected): a gain of 10 % of an input moves a curved map by
+        more than its slope says. The first step uses the sensitivity at the reading
+        (``slope`` per unit of the linear coefficient), the next ones the secant between the
+        last two re-runs: one re-run per step."""
         if not np.isfinite(v) or (self.kind == "gain_error" and v <= 0):
             return v
         r = ctx.y - base
+        st = _step(ctx.t, onset)
+        last: tuple[float, np.ndarray] | None = None
         for _ in range(iterations):
             p0 = ctx.sensor_error_response(self.sensor, self.kind, v, onset, self.column,
                                            keep=False)
-            dv = 1e-3 * max(abs(v), 1e-6)
-            p1 = ctx.sensor_error_response(self.sensor, self.kind, v + dv, onset, self.column,
-                                           keep=False)
-            jac = (p1 - p0) / dv
+            if last is not None and last[0] != v:
+                jac = (p0 - last[1]) / (v - last[0])  # secant: the slope between two re-runs
+            else:
+                # d(beta)/d(size): beta = 1/g - 1 for a gain, -size for the others
+                dbeta = -1.0 / v ** 2 if self.kind == "gain_error" else -1.0
+                jac = slope * st * dbeta
+            last = (v, p0)
             ok = m & np.isfinite(jac) & np.isfinite(p0) & np.isfinite(r)
             den = float(np.dot(jac[ok], jac[ok]))
             if not ok.any() or den <= 0.0:

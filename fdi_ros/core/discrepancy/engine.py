@@ -711,19 +711,30 @@ def _fit_all(views: dict[str, _Channel], chain: list[Hypothesis],
 
 
 def _contenders(scored: list[tuple[Hypothesis, Candidate]], choice: Candidate,
-                alpha: float, limit: int = 12) -> list[tuple[Hypothesis, Candidate]]:
+                before: float, alpha: float, limit: int = 12
+                ) -> list[tuple[Hypothesis, Candidate]]:
     """The choice and the explanations the primary residuals cannot tell from it: within
-    one standard error of it, or not significantly worse (significant or not on their own)."""
+    one standard error of it, not significantly worse (significant or not on their own), or
+    explaining at least 90 % of what it explains (``before``: the current model's mean
+    held-out score): a consistent but small advantage on the primary residuals is no reason
+    to keep an explanation from the residuals that could tell the two apart."""
     out = []
+    best = before - float(np.nanmean(choice.mse_blocks))
     for h, c in sorted(scored, key=lambda hc: float(np.nanmean(hc[1].mse_blocks))):
         d = c.mse_blocks - choice.mse_blocks
         d = d[np.isfinite(d)]
         if c is choice or (d.size >= 3 and (
                 d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size)
+                or before - float(np.nanmean(c.mse_blocks)) >= 0.9 * best
                 or paired_p(c.mse_blocks, choice.mse_blocks) >= alpha)):
             out.append((h, c))
         if len(out) >= limit:
             break
+    # the special cases of a contender (the same effect with fewer change times) are
+    # contenders too: parsimony then chooses among them
+    have = {id(h) for h, _ in out}
+    out += [(h, c) for h, c in scored if id(h) not in have
+            and any(_nests(big, h) for big, _ in out)]
     return out
 
 
@@ -777,7 +788,7 @@ def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
         if sig and second and _relevant(views, chain, h):
             # the leading explanations are checked on the secondary residuals too: scored
             # jointly over every residual, the one that explains all of them is named
-            cont = _contenders(scored, choice, cfg.alpha)
+            cont = _contenders(scored, choice, float(np.nanmean(score_b)), cfg.alpha)
             _score_all(views, [hh for hh, _ in cont], st, set(views), sc)
             level = _noise_levels(views, st, sc, [hh for hh, _ in cont])
             every = _joint_blocks(views, {v: st.mse_b[v] for v in views}, level)
@@ -788,10 +799,15 @@ def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
                                       p_adjusted=detect)) for hh, _ in cont]
             h, choice = _one_se_choice(ties_from, cfg.alpha, n_eff)
         if progress and sig and second:
+            def per_residual(hh: Hypothesis) -> str:
+                ma = sc.mse_a[id(hh)]
+                return "/".join(f"{np.nanmean(ma.get(v, st.mse_b[v])) / level[v]:.3g}"
+                                for v in views)
             progress(f"step {step + 1}: leading explanations, held-out score (every residual in "
-                     "units of its noise level): " + ", ".join(
-                         f"{c.label} on {c.channel} {np.nanmean(c.mse_blocks):.4g}"
-                         for _, c in sorted(ties_from, key=lambda hc: np.nanmean(
+                     f"units of its noise level; {'/'.join(views)}): " + ", ".join(
+                         f"{c.label} on {c.channel} {np.nanmean(c.mse_blocks):.4g} "
+                         f"({per_residual(hh)})"
+                         for hh, c in sorted(ties_from, key=lambda hc: np.nanmean(
                              hc[1].mse_blocks))[:6]))
         if progress:
             progress(f"step {step + 1}: best {choice.label} on {choice.channel} gain "

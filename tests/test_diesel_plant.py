@@ -114,8 +114,8 @@ def test_chunked_simulation_gives_the_samples_and_features_of_the_scenario_block
 
     sc = dataclasses.replace(load_cases(SCEN / "diesel_realistic_drive.yaml")[0],
                              duration_s=seconds)
-    one = list(b for b, _ in iter_simulate(sc, seed=5))
-    many = list(b for b, _ in iter_simulate(sc, seed=5, chunk=7))
+    one = [b for b, _ in iter_simulate(sc, seed=5)]
+    many = [b for b, _ in iter_simulate(sc, seed=5, chunk=7)]
     t1, tm = (np.concatenate([b.t for b in bs]) for bs in (one, many))
     assert t1.size == tm.size and t1[-1] >= seconds > t1[-1 - one[0].t.size]
     assert np.allclose(t1, tm, rtol=0, atol=1e-9)

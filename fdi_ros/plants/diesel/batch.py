@@ -209,7 +209,7 @@ class BatchedModel:
         rv = _new(ResidualVector)
         rv.__dict__.update(model_id=self.model_id, index=fv.index, t=fv.t_end, valid=valid[i],
                            status=status[i], names=self._names, units=self._units,
-                           values=values[i], norm=norm[i])
+                           values=values[i], norm=norm[i], regime="")
         return rv
 
     # -- one run, from a reset at segment k0 to the end of the stream ----------------------

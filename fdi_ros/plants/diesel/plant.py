@@ -229,12 +229,20 @@ class DieselParams:
         return 720.0 / self.n_cyl
 
 
+# The boost-temperature sensor is slow (a thermistor in a housing): its segment mean gets a
+# rate feature T2_rate over this many segments (0.12 s at 2000 rpm), from which the reference
+# models undo the sensor's lag (T2 + tau dT2/dt; tau identified with the models).
+T2_RATE_LAG = 8
+
+
 def crank_segmenter(p: DieselParams | None = None, **options: Any) -> CrankSegmenter:
     """The crank-synchronous segmenter of this engine: segment length, displacement and gas
-    constant from its parameters (their one source); ``options`` (n_harmonics, max_gap_deg,
-    or one of the three) go to :class:`~fdi_ros.core.crank.CrankSegmenter`."""
+    constant from its parameters (their one source), and the rate of the T2 sensor's mean;
+    ``options`` (n_harmonics, max_gap_deg, rate_channels, rate_lag, or one of the three) go
+    to :class:`~fdi_ros.core.crank.CrankSegmenter`."""
     p = DieselParams() if p is None else p
-    return CrankSegmenter(**{"segment_deg": p.segment_deg, "V_D": p.V_D, "R": p.R, **options})
+    return CrankSegmenter(**{"segment_deg": p.segment_deg, "V_D": p.V_D, "R": p.R,
+                             "rate_channels": ("T2",), "rate_lag": T2_RATE_LAG, **options})
 
 
 # ----------------------------------------------------------------------------- static maps

@@ -141,6 +141,11 @@ class IdentificationConfig:
         held fixed only bound the validity region); False: (n, rho2) only, as in the paper.
     lut_actuator : breakpoints per actuator input (a command has few distinct settings: its
         distinct values when there are at most this many, else this many equidistant ones).
+    extra_inputs : further measured features that every model takes as inputs (e.g. the
+        injected fuel and the VGT command where the EGR valve is open: the recirculated gas
+        follows the exhaust back pressure); their identified ranges bound the validity too.
+    tables : sample the models into ECU look-up tables (False: the models are evaluated
+        directly, for maps of more inputs than a table holds).
     """
 
     max_models: int = 20
@@ -160,6 +165,8 @@ class IdentificationConfig:
     phase_min_amp_frac: float = 0.1
     actuator_inputs: bool = True
     lut_actuator: int = 6
+    extra_inputs: tuple[str, ...] = ()
+    tables: bool = True
 
     def __post_init__(self) -> None:
         if self.block < 1:
@@ -384,22 +391,24 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
     blocks choose the number of local models, the test blocks give the reported NRMSE.
     """
     cfg = config or IdentificationConfig()
-    missing = [k for k in INPUTS + OUTPUTS if k not in data]
+    extra = tuple(cfg.extra_inputs)
+    missing = [k for k in INPUTS + OUTPUTS + extra if k not in data]
     if missing:
         raise ValueError(f"identification data lacks {missing}")
     finite = np.ones(np.asarray(data["n"]).shape[0], dtype=bool)
-    for k in INPUTS + OUTPUTS + tuple(a for a in ACTUATORS if a in data):
+    for k in INPUTS + OUTPUTS + extra + tuple(a for a in ACTUATORS if a in data):
         finite &= np.isfinite(np.asarray(data[k], dtype=float))
     # Actuator commands the data span are model inputs; held ones bound the validity only.
     spanned = tuple(a for a in ACTUATORS if cfg.actuator_inputs and a in data and
                     np.ptp(np.asarray(data[a], dtype=float)[finite]) > ACTUATOR_TOL[a])
-    inputs = INPUTS + spanned
+    inputs = INPUTS + spanned + tuple(k for k in extra if k not in spanned)
     X = np.column_stack([np.asarray(data[k], dtype=float) for k in inputs])[finite]
     if X.shape[0] < 10 * cfg.min_samples_per_model:
         raise ValueError(f"only {X.shape[0]} usable segments: too few to identify the models")
+    bounded = INPUTS + ACTUATORS + tuple(k for k in extra if k not in ACTUATORS)
     validity = ValidityRegion.learn({k: np.asarray(data[k], dtype=float)[finite]
-                                     for k in INPUTS + ACTUATORS if k in data},
-                                    INPUTS + ACTUATORS, tolerance=ACTUATOR_TOL,
+                                     for k in bounded if k in data},
+                                    bounded, tolerance=ACTUATOR_TOL,
                                     rel_tolerance=0.0, units=UNITS)
     tr, va, te = split_blocks(X.shape[0], block=cfg.block, seed=cfg.seed)
     n_bp = np.asarray(cfg.lut_n, dtype=float)
@@ -409,7 +418,7 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
     if r_bp.size == 0:
         r_bp = np.linspace(X[:, 1].min(), X[:, 1].max(), 13)
     bps = (n_bp, r_bp) + tuple(actuator_breakpoints(X[:, 2 + j], cfg.lut_actuator)
-                               for j in range(len(spanned)))
+                               for j in range(len(spanned))) if cfg.tables else None
     models, tables, results, centres, min_amp = {}, {}, {}, {}, {}
     nr_tr, nr_te, nr_lut, lut_err = {}, {}, {}, {}
     t0 = time.perf_counter()
@@ -474,10 +483,10 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
                 res = m.fit(X[ktr], vals[ktr], X_val=X[kva], y_val=vals[kva],
                             progress=progress, input_names=inputs, output_name=name)
                 models[name], results[name] = m, res
-                tables[name] = LookupTable.from_model(m.predict, bps,
-                                                      region=m.in_region, input_names=inputs,
-                                                      output_name=name)
-                pred[comp] = (m.predict, tables[name])
+                tab = _table(m, bps, inputs, name)
+                if tab is not None:
+                    tables[name] = tab
+                pred[comp] = (m.predict, tab or m.predict)
             yw = wrap_phase(y, centres[k])
 
             def phase_of(Xs, use_table, pred=pred):
@@ -500,12 +509,14 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
         res = m.fit(X[ktr], y[ktr], X_val=X[kva], y_val=y[kva], progress=progress,
                     input_names=inputs, output_name=k)
         models[k], results[k] = m, res
-        tables[k] = LookupTable.from_model(m.predict, bps, region=m.in_region,
-                                           input_names=inputs, output_name=k)
+        tab = _table(m, bps, inputs, k)
+        if tab is not None:
+            tables[k] = tab
         nr_tr[k] = nrmse(y[ktr], m.predict(X[ktr]))
         nr_te[k] = nrmse(y[kte], m.predict(X[kte]))
-        nr_lut[k] = nrmse(y[kte], tables[k](X[kte]))
-        lut_err[k] = table_error(m.predict, tables[k], X[kte])
+        nr_lut[k] = nrmse(y[kte], (tab or m.predict)(X[kte]))
+        lut_err[k] = table_error(m.predict, tab, X[kte]) if tab is not None else \
+            {"rmse": 0.0, "n_points": int(kte.size)}
     train_s = time.perf_counter() - t0
     info = {"nrmse_test": nr_te, "storage_coeff": storage, "phase_min_amp": min_amp,
             "n_models": {k: r.n_models for k, r in results.items()},
@@ -518,6 +529,14 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
                                 n_train=int(tr.size), n_val=int(va.size), n_test=int(te.size),
                                 train_s=train_s, success=all(r.success for r in results.values()),
                                 message="identified five reference models")
+
+
+def _table(m: Lolimot, bps, inputs: tuple[str, ...], name: str) -> LookupTable | None:
+    """The ECU look-up table of one identified map (None: tables are not wanted)."""
+    if bps is None:
+        return None
+    return LookupTable.from_model(m.predict, bps, region=m.in_region, input_names=inputs,
+                                  output_name=name)
 
 
 def table_grid_errors(models: ReferenceModelSet, X: np.ndarray,

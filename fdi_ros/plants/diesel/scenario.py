@@ -152,17 +152,25 @@ def _sweep_points(spec: Mapping[str, Any]) -> list[dict]:
     return pts
 
 
+# Settings of the zigzag that a pass may set for itself (its speed range, ramp and fuel wave:
+# e.g. a pass over the part-load map where the ECU opens the EGR valve).
+_PASS_OVERRIDES = ("n_min", "n_max", "n_ramp_s", "fuel_period_s", "fuel_min", "load_max")
+
+
 def _zigzag_passes(spec: Mapping[str, Any]) -> list[dict]:
-    """The zigzag cycle once per entry of ``passes`` (actuator settings per pass)."""
+    """The zigzag cycle once per entry of ``passes`` (actuator settings per pass, and any of
+    :data:`_PASS_OVERRIDES`)."""
     passes = spec.get("passes")
     if not passes:
         return _zigzag_points(spec)
     pts: list[dict] = []
     for i, ps in enumerate(passes):
-        bad = set(ps) - {"egr_cmd", "swirl_cmd", "ecu", "egr_trim", "trim_period_s"}
+        bad = set(ps) - {"egr_cmd", "swirl_cmd", "ecu", "egr_trim", "trim_period_s"} \
+            - set(_PASS_OVERRIDES)
         if bad:
             raise ValueError(f"zigzag pass {i}: unknown keys {sorted(bad)}")
-        one = _zigzag_points({**spec, "egr_cmd": ps.get("egr_cmd", 0.0),
+        one = _zigzag_points({**spec, **{k: ps[k] for k in _PASS_OVERRIDES if k in ps},
+                              "egr_cmd": ps.get("egr_cmd", 0.0),
                               "swirl_cmd": ps.get("swirl_cmd", 0.0)})
         t0 = pts[-1]["t"] + float(spec.get("step_s", 0.5)) if pts else 0.0
         amp, period = float(ps.get("egr_trim", 0.0)), float(ps.get("trim_period_s", 23.0))
@@ -181,7 +189,11 @@ def _zigzag_points(spec: Mapping[str, Any]) -> list[dict]:
     period = float(spec.get("fuel_period_s", 20.0))
     f_min = float(spec.get("fuel_min", 3.0))
     lim = spec.get("fuel_limit") or {"n": [n_min, n_max], "fuel": [40.0, 40.0]}
-    ln, lf = [float(v) for v in lim["n"]], [float(v) for v in lim["fuel"]]
+    # load_max: the wave's top as a share of the full-load limit (part-load passes)
+    share = float(spec.get("load_max", 1.0))
+    if not 0.0 < share <= 1.0:
+        raise ValueError("load_max must be within (0, 1]")
+    ln, lf = [float(v) for v in lim["n"]], [share * float(v) for v in lim["fuel"]]
     dt = float(spec.get("step_s", 0.5))
     egr = float(spec.get("egr_cmd", 0.0))
     swirl = float(spec.get("swirl_cmd", 0.0))

@@ -26,6 +26,11 @@ __all__ = ["SymptomConfig", "SymptomGenerator", "SymptomState", "calibrate_thres
            "load_thresholds", "moving_average", "symptom_name"]
 
 
+# What a residual model's quasi-stationarity gate makes of a transient segment.
+TRANSIENT_RULES = ("not_valid", "regime")
+TRANSIENT_SUFFIX = "/transient"
+
+
 def symptom_name(residual: str) -> str:
     """``r_x`` -> ``s_x`` (other names: ``s_`` prefixed)."""
     return "s_" + residual.removeprefix("r_")
@@ -68,6 +73,9 @@ class SymptomConfig:
         so that a fault's own transient does not switch its detection off).
     rate_lag : dp2/dt of the storage correction is a backward difference over this many
         segments.
+    transients : what the gate makes of a transient segment: "not_valid" (no diagnosis), or
+        "regime" (a regime of its own, ``<regime>/transient``, judged by the thresholds of the
+        fault-free transients: diagnosed, less sensitively).
     regimes : operating regimes of their own (name -> ``{"centre", "threshold", "scale"}``,
         tuples as above): a model that covers several regimes (e.g. an engine's EGR valve
         closed or open) with models of different accuracy says in each residual vector which
@@ -92,6 +100,7 @@ class SymptomConfig:
     rate_lag: int = 2
     regimes: Mapping[str, Mapping[str, tuple[float, ...]]] = field(default_factory=dict)
     base_regime: str = ""
+    transients: str = "not_valid"
 
     def __post_init__(self) -> None:
         m = len(self.names)
@@ -109,6 +118,8 @@ class SymptomConfig:
             regimes[str(rname)] = vals
         object.__setattr__(self, "regimes", regimes)
         object.__setattr__(self, "base_regime", str(self.base_regime))
+        if self.transients not in TRANSIENT_RULES:
+            raise ValueError(f"transients must be one of {TRANSIENT_RULES}")
         if not (self.max_speed_change > 0 and self.max_fuel_change > 0 and self.settle_s >= 0
                 and self.rate_lag >= 1 and np.isfinite(self.storage_coeff)):
             raise ValueError("gate limits must be > 0, settle_s >= 0, rate_lag >= 1, "

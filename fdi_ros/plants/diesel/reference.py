@@ -203,6 +203,54 @@ class ReferenceModelSet:
     info: dict = field(default_factory=dict)
     inputs: tuple[str, ...] = INPUTS
     validity: ValidityRegion | None = None
+    #: further operating regimes, each a model set of its own (e.g. the EGR valve open), tried
+    #: in order after this one (see :meth:`assign`); saved under ``regimes/<name>/``
+    regimes: list[ReferenceModelSet] = field(default_factory=list)
+
+    @property
+    def regime(self) -> str:
+        """This set's operating regime ("" for a set identified as one regime)."""
+        return str(self.info.get("regime", ""))
+
+    @property
+    def t2_tau(self) -> float:
+        """Time constant [s] of the T2 sensor's lag that the models undo (0: none)."""
+        return float(self.info.get("t2_tau", 0.0))
+
+    def regime_sets(self) -> list[ReferenceModelSet]:
+        """This set and its further regimes, in the order they are tried."""
+        return [self, *self.regimes]
+
+    def compensate(self, data: Mapping[str, object]) -> dict[str, np.ndarray]:
+        """The features with the T2 sensor's lag undone (``T2 + tau dT2/dt`` from the
+        ``T2_rate`` feature; rho2 and eta_v follow, both ~ 1/T2): what the models were
+        identified on. Without a time constant: the features as they are."""
+        out = {k: np.atleast_1d(np.asarray(v, dtype=float)) for k, v in data.items()}
+        tau = self.t2_tau
+        if tau <= 0.0:
+            return out
+        if "T2_rate" not in out or "T2" not in out:
+            raise KeyError("T2_rate")
+        T2 = out["T2"]
+        T2c = T2 + tau * out["T2_rate"]
+        ratio = T2c / T2
+        out["T2"] = T2c
+        out["rho2"] = out["rho2"] / ratio
+        out["eta_v"] = out["eta_v"] * ratio
+        return out
+
+    def assign(self, data: Mapping[str, object], size: int) -> np.ndarray:
+        """Per segment, the position in :meth:`regime_sets` of the first regime whose
+        identified region (every input's range) holds it; -1 where none does."""
+        out = np.full(size, -1, dtype=int)
+        for j, ms in enumerate(self.regime_sets()):
+            free = out < 0
+            if not free.any():
+                break
+            inside = ms.validity.contains(data, size) if ms.validity is not None else \
+                np.ones(size, dtype=bool)
+            out[free & inside] = j
+        return out
 
     @property
     def outputs(self) -> tuple[str, ...]:
@@ -295,7 +343,12 @@ class ReferenceModelSet:
         manifest = {"type": "diesel_reference", "inputs": list(self.inputs),
                     "outputs": list(self.models), "tables": list(self.tables),
                     "phase_centre": self.phase_centre, "info": self.info,
-                    "validity": self.validity.to_dict() if self.validity else None}
+                    "validity": self.validity.to_dict() if self.validity else None,
+                    "regimes": [r.regime for r in self.regimes]}
+        for r in self.regimes:
+            if not r.regime or r.regimes:
+                raise ValueError("a further regime needs a name and no regimes of its own")
+            r.save(d / "regimes" / r.regime)
         (d / MANIFEST).write_text(json.dumps(manifest, indent=1))
         return d
 
@@ -329,7 +382,9 @@ class ReferenceModelSet:
                    phase_centre={k: float(v) for k, v in manifest["phase_centre"].items()},
                    info=manifest.get("info", {}),
                    inputs=tuple(manifest.get("inputs", INPUTS)),
-                   validity=ValidityRegion.from_dict(validity) if validity else None)
+                   validity=ValidityRegion.from_dict(validity) if validity else None,
+                   regimes=[cls._load(d / "regimes" / str(r))
+                            for r in manifest.get("regimes") or []])
 
 
 @dataclass(frozen=True)

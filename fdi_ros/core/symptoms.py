@@ -23,12 +23,25 @@ from fdi_ros.core.fst import signature_string
 from fdi_ros.core.types import ResidualVector
 
 __all__ = ["SymptomConfig", "SymptomGenerator", "SymptomState", "calibrate_thresholds",
-           "load_thresholds", "moving_average", "symptom_name"]
+           "load_thresholds", "moving_average", "rate_status", "symptom_name"]
 
 
 # What a residual model's quasi-stationarity gate makes of a transient segment.
 TRANSIENT_RULES = ("not_valid", "regime")
 TRANSIENT_SUFFIX = "/transient"
+# status word of a segment whose inputs change beyond the invalid_rates limits
+TOO_FAST = "changing too fast"
+
+
+def rate_status(values: Mapping[str, float], limits: Mapping[str, float],
+                kind: str = "transient") -> str:
+    """The gate's status for features beyond their ``max_rates`` limits ("" if none; a
+    non-finite value counts as within)."""
+    big = {k: v for k, v in values.items() if np.isfinite(v) and abs(v) > limits[k]}
+    if not big:
+        return ""
+    what = ", ".join(f"|{k}| = {abs(v):.1f} > {limits[k]:g}" for k, v in big.items())
+    return f"not valid here: {kind} ({what})"
 
 
 def symptom_name(residual: str) -> str:
@@ -73,6 +86,12 @@ class SymptomConfig:
         so that a fault's own transient does not switch its detection off).
     rate_lag : dp2/dt of the storage correction is a backward difference over this many
         segments.
+    max_rates : further gate limits: a segment is transient while the magnitude of one of
+        these features (e.g. a temperature's rate of change) exceeds its limit.
+    actuator_move : the change of a commanded actuator that makes the following seconds
+        transient (None: the residual model's own default).
+    invalid_rates : like ``max_rates``, but beyond these limits a segment is "not valid
+        here" whatever ``transients`` says (too fast for any threshold).
     transients : what the gate makes of a transient segment: "not_valid" (no diagnosis), or
         "regime" (a regime of its own, ``<regime>/transient``, judged by the thresholds of the
         fault-free transients: diagnosed, less sensitively).
@@ -101,6 +120,9 @@ class SymptomConfig:
     regimes: Mapping[str, Mapping[str, tuple[float, ...]]] = field(default_factory=dict)
     base_regime: str = ""
     transients: str = "not_valid"
+    max_rates: Mapping[str, float] = field(default_factory=dict)
+    actuator_move: float | None = None
+    invalid_rates: Mapping[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         m = len(self.names)
@@ -120,6 +142,13 @@ class SymptomConfig:
         object.__setattr__(self, "base_regime", str(self.base_regime))
         if self.transients not in TRANSIENT_RULES:
             raise ValueError(f"transients must be one of {TRANSIENT_RULES}")
+        for name in ("max_rates", "invalid_rates"):
+            rates = {str(k): float(v) for k, v in dict(getattr(self, name)).items()}
+            if any(not v > 0 for v in rates.values()):
+                raise ValueError(f"{name} limits must be > 0")
+            object.__setattr__(self, name, rates)
+        if self.actuator_move is not None and not self.actuator_move > 0:
+            raise ValueError("actuator_move must be > 0")
         if not (self.max_speed_change > 0 and self.max_fuel_change > 0 and self.settle_s >= 0
                 and self.rate_lag >= 1 and np.isfinite(self.storage_coeff)):
             raise ValueError("gate limits must be > 0, settle_s >= 0, rate_lag >= 1, "
@@ -140,6 +169,8 @@ class SymptomConfig:
     def to_dict(self) -> dict[str, Any]:
         d = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
         d["regimes"] = {r: {k: list(v) for k, v in st.items()} for r, st in self.regimes.items()}
+        d["max_rates"] = dict(self.max_rates)
+        d["invalid_rates"] = dict(self.invalid_rates)
         return d
 
     def knows(self, regime: str) -> bool:
@@ -210,6 +241,7 @@ def calibrate_thresholds(R: np.ndarray, valid: np.ndarray | None = None, *,
                          min_threshold: Sequence[float] | None = None,
                          names: Sequence[str], regimes: Sequence[str] | None = None,
                          base_regime: str = "", min_rows: int = 20,
+                         margins: Mapping[str, float] | None = None,
                          **settings: Any) -> SymptomConfig:
     """Thresholds from fault-free residuals (N, m), not tuned on any fault.
 
@@ -220,7 +252,9 @@ def calibrate_thresholds(R: np.ndarray, valid: np.ndarray | None = None, *,
     ``regimes``: the operating regime of each row (see :class:`SymptomConfig`); each regime
     gets statistics of its own rows (``base_regime``'s, or "" rows', are the top-level ones).
     A regime with fewer than ``min_rows`` valid rows gets none: its residuals stay "not valid
-    here" rather than be judged by another regime's thresholds.
+    here" rather than be judged by another regime's thresholds. ``margins``: a regime's own
+    margin on its largest fault-free excursion (e.g. a regime whose models rest on fewer data
+    and generalise less).
     """
     R = np.asarray(R, dtype=float)
     keep = np.all(np.isfinite(R), axis=1)
@@ -228,16 +262,18 @@ def calibrate_thresholds(R: np.ndarray, valid: np.ndarray | None = None, *,
         keep &= np.asarray(valid, dtype=bool)
     labels = np.array([""] * R.shape[0] if regimes is None else
                       ["" if r == base_regime else str(r) for r in regimes], dtype=object)
-    def stats(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return _statistics(rows, k_sigma=k_sigma, margin=margin, filter_len=filter_len,
-                           min_threshold=min_threshold)
+    margins = dict(margins or {})
 
-    c, thr, s = stats(R[keep & (labels == "")])
+    def stats(rows: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return _statistics(rows, k_sigma=k_sigma, margin=margins.get(name, margin),
+                           filter_len=filter_len, min_threshold=min_threshold)
+
+    c, thr, s = stats(R[keep & (labels == "")], base_regime)
     extra = {}
     for name in sorted(set(labels[keep]) - {""}):
         rows = R[keep & (labels == name)]
         if rows.shape[0] >= max(min_rows, 20):
-            rc, rt, rs = stats(rows)
+            rc, rt, rs = stats(rows, name)
             extra[name] = {"centre": tuple(rc), "threshold": tuple(rt), "scale": tuple(rs)}
     return SymptomConfig(centre=tuple(c), threshold=tuple(thr), scale=tuple(s),
                          filter_len=filter_len, names=tuple(names), regimes=extra,

@@ -25,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from fdi_ros.core.symptoms import TRANSIENT_SUFFIX
+from fdi_ros.core.sliding import window_ranges
+from fdi_ros.core.symptoms import TOO_FAST, TRANSIENT_SUFFIX, rate_status
 from fdi_ros.core.types import FeatureVector, ResidualVector
 from fdi_ros.plants.diesel.ecu import (
     ACTUATOR_MOVE,
@@ -260,14 +261,31 @@ class BatchedModel:
             settled = np.ones(m, dtype=bool)
         for i in np.flatnonzero(valid & ~(np.isfinite(dp) & np.isfinite(dn))):
             valid[i], status[i] = False, _SETTLING
+        too_fast = {k: self.stream.col(k)[0][k0:] for k in c.invalid_rates}
+        for k, v in too_fast.items():
+            with np.errstate(invalid="ignore"):
+                rows = np.flatnonzero(valid & (np.abs(v) > c.invalid_rates[k]))
+            for i in rows:
+                valid[i] = False
+                status[i] = rate_status({a: float(x[i]) for a, x in too_fast.items()},
+                                        c.invalid_rates, TOO_FAST)
         transient = valid & ~settled
-        moved = self._actuators_moved(k0, t, k, rs)
+        moved = self._actuators_moved(k0, t, rs)
         big = np.zeros(m, dtype=bool)
         for v in moved.values():
             with np.errstate(invalid="ignore"):
-                big |= v > ACTUATOR_MOVE
+                big |= v > (c.actuator_move or ACTUATOR_MOVE)
         for i in np.flatnonzero(valid & settled & big):   # the others have no status to give
-            transient[i] = bool(actuator_status({a: float(v[i]) for a, v in moved.items()}))
+            transient[i] = bool(actuator_status({a: float(v[i]) for a, v in moved.items()},
+                                                c.actuator_move))
+        rates = {k: self.stream.col(k)[0][k0:] for k in c.max_rates}
+        fast = np.zeros(m, dtype=bool)
+        for k, v in rates.items():
+            with np.errstate(invalid="ignore"):
+                fast |= np.abs(v) > c.max_rates[k]
+        still = valid & ~transient
+        for i in np.flatnonzero(still & fast):
+            transient[i] = True
         if c.transients == "regime":
             for i in np.flatnonzero(transient):
                 regime[i] = regime[i] + TRANSIENT_SUFFIX
@@ -277,30 +295,26 @@ class BatchedModel:
                 status[i] = (f"not valid here: transient inputs (speed moved {dn[i]:.0f} "
                              f"rpm, fuel {df[i]:.1f} mg within {c.settle_s:g} s)"
                              if not settled[i] else
-                             actuator_status({a: float(v[i]) for a, v in moved.items()}))
+                             actuator_status({a: float(v[i]) for a, v in moved.items()},
+                                             c.actuator_move)
+                             or rate_status({k: float(v[i]) for k, v in rates.items()},
+                                            c.max_rates))
         if "r_eta" in c.names and c.storage_coeff:
             j = c.names.index("r_eta")
             rows = np.flatnonzero(valid)
             R[rows, j] += c.storage_coeff * dp[rows] / (n[rows] * p2[rows])
         return R, valid, status, regime
 
-    def _actuators_moved(self, k0: int, t: np.ndarray, k: np.ndarray,
+    def _actuators_moved(self, k0: int, t: np.ndarray,
                          rs: np.ndarray) -> dict[str, np.ndarray]:
         """Per actuator command, its range over the last ACTUATOR_SETTLE_S of the run (NaN:
         not in the data), as QuasiStationarity.actuators_moved."""
         out = {}
-        lo = np.minimum(np.maximum(rs, np.searchsorted(t, t - ACTUATOR_SETTLE_S,
-                                                       side="left")), k)
-        idx = np.empty(2 * t.size, dtype=np.intp)
-        idx[0::2], idx[1::2] = lo, k + 1
         for a in GATED_ACTUATORS:
             v, has = (x[k0:] for x in self.stream.col(a))
             v = np.where(has & np.isfinite(v), v, np.nan)
-            if not np.isfinite(v).any():
-                continue
-            pad = np.append(v, np.nan)
-            with np.errstate(invalid="ignore"):
-                out[a] = (np.fmax.reduceat(pad, idx)[0::2] - np.fmin.reduceat(pad, idx)[0::2])
+            if np.isfinite(v).any():
+                out[a] = window_ranges(t, v, ACTUATOR_SETTLE_S, start=rs)
         return out
 
     def _compute(self, k0: int) -> _Run:

@@ -26,9 +26,10 @@ circular mean, and residuals are wrapped to +-90 deg CA.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -167,6 +168,7 @@ class IdentificationConfig:
     lut_actuator: int = 6
     extra_inputs: tuple[str, ...] = ()
     tables: bool = True
+    coverage_inputs: int = 0
 
     def __post_init__(self) -> None:
         if self.block < 1:
@@ -181,7 +183,8 @@ class IdentificationConfig:
                        min_samples_per_model=self.min_samples_per_model,
                        patience=self.patience, coverage_bins=self.coverage_bins,
                        coverage_min_count=self.coverage_min_count,
-                       compress_bins=self.compress_bins)
+                       compress_bins=self.compress_bins,
+                       coverage_inputs=self.coverage_inputs)
 
 
 _LOADED: dict[tuple[str, int], ReferenceModelSet] = {}  # see ReferenceModelSet.load
@@ -484,7 +487,8 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
     storage = 0.0
     xs = None
     if cfg.storage_correction and all(k in data for k in ("t", "p2")):
-        xs = storage_regressor(data["t"], data["n"], data["p2"], cfg.rate_lag)[finite]
+        xs = (np.asarray(data["storage_x"], dtype=float) if "storage_x" in data else
+              storage_regressor(data["t"], data["n"], data["p2"], cfg.rate_lag))[finite]
     for k in outputs:
         y = np.asarray(data[k], dtype=float)[finite]
         if k == "eta_v" and xs is not None:
@@ -584,6 +588,144 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
                                 n_train=int(tr.size), n_val=int(va.size), n_test=int(te.size),
                                 train_s=train_s, success=all(r.success for r in results.values()),
                                 message="identified five reference models")
+
+
+# Operating regimes of the diesel's reference models, in the order they are tried: the
+# paper's (EGR valve closed, swirl flaps open: the ECU maps and tables of the paper), then the
+# part-load regimes where the ECU recirculates exhaust gas, with the flaps open or closed.
+# Each: (name, EGR valve open?, filling ports closed?).
+REGIMES = (("egr_closed_flaps_open", False, False), ("egr_open_flaps_open", True, False),
+           ("egr_open_flaps_closed", True, True))
+# Inputs besides (n, rho2, egr_cmd) of the maps where the EGR valve is open: the recirculated
+# gas follows the exhaust back pressure, set by the VGT and the exhaust flow (fuel), and heats
+# the charge (T2).
+OPEN_EGR_INPUTS = ("fuel", "vgt", "T2")
+# The boost temperature's rate [K/s] beyond which the static maps do not hold (a valve that
+# opened or closed moments ago, a load step heating the intercooler): such segments are left
+# out of the identification, and on line they are "transient" (a regime of their own).
+TEMPERATURE_SETTLED = 3.0
+# Fewest segments a regime needs in the identification data to get models of its own, and
+# the stride of the segments its maps are fitted on.
+MIN_REGIME_SEGMENTS = 2000
+REGIME_STRIDE = 2
+# Time constants [s] of the T2 sensor's lag tried by identify_t2_tau (its search bounds).
+T2_TAU_BOUNDS = (0.0, 3.0)
+
+
+def regime_labels(data: Mapping[str, np.ndarray]) -> np.ndarray:
+    """The regime of each segment by its actuator commands ("" where none of
+    :data:`REGIMES`: e.g. flaps moving, or closed with the EGR valve closed)."""
+    n = np.asarray(data["n"]).shape[0]
+    egr = np.asarray(data["egr_cmd"], dtype=float) if "egr_cmd" in data else np.zeros(n)
+    swirl = np.asarray(data["swirl_cmd"], dtype=float) if "swirl_cmd" in data else np.zeros(n)
+    tol_e, tol_s = ACTUATOR_TOL["egr_cmd"], ACTUATOR_TOL["swirl_cmd"]
+    out = np.full(n, "", dtype=object)
+    for name, egr_open, closed in REGIMES:
+        e_ok = egr > tol_e if egr_open else np.abs(egr) <= tol_e
+        s_ok = np.abs(swirl - 1.0) <= tol_s if closed else np.abs(swirl) <= tol_s
+        out[(out == "") & e_ok & s_ok] = name
+    return out
+
+
+def compensate_t2(data: Mapping[str, np.ndarray], tau: float) -> dict[str, np.ndarray]:
+    """``data`` with the T2 sensor's lag undone (as :meth:`ReferenceModelSet.compensate`)."""
+    probe = ReferenceModelSet(models={}, tables={}, info={"t2_tau": float(tau)})
+    return probe.compensate(data)
+
+
+def identify_t2_tau(data: Mapping[str, np.ndarray], config: IdentificationConfig) -> float:
+    """The T2 sensor's time constant [s] whose compensation lets the static eta_V map of
+    (n, rho2) predict the held-out (validation) segments best: a slow sensor makes rho2 and
+    eta_V wrong in every temperature transient, by ``tau dT2/dt / T2``."""
+    from scipy.optimize import minimize_scalar
+
+    n_rows = np.asarray(data["n"]).shape[0]
+    tr, va, _ = split_blocks(n_rows, block=config.block, seed=config.seed)
+    step = max(1, n_rows // 20000)   # every step-th segment: the search fits many maps
+    tr, va = tr[::step], va[::step]
+
+    x = np.nan_to_num(np.asarray(data.get("storage_x", np.zeros(n_rows)), dtype=float))
+
+    def val_rmse(tau: float) -> float:
+        d = compensate_t2(data, tau)
+        X = np.column_stack([d[k] for k in INPUTS])
+        y = d["eta_v"]
+        ok = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
+        t, v = tr[ok[tr]], va[ok[va]]
+        m = config.lolimot()
+        m.fit(X[t], y[t])
+        # the stored air's share by least squares on what the map leaves, then the map again
+        e = y[t] - m.predict(X[t])
+        c = float(x[t] @ e / (x[t] @ x[t])) if float(x[t] @ x[t]) > 0 else 0.0
+        m.fit(X[t], y[t] - c * x[t])
+        return float(np.sqrt(np.mean((y[v] - c * x[v] - m.predict(X[v])) ** 2)))
+
+    opt = minimize_scalar(val_rmse, bounds=T2_TAU_BOUNDS, method="bounded",
+                          options={"xatol": 0.02, "maxiter": 25})
+    return float(opt.x) if opt.fun < val_rmse(0.0) else 0.0
+
+
+def identify_regime_models(data: Mapping[str, np.ndarray], *,
+                           config: IdentificationConfig | None = None,
+                           progress: bool = False, further_regimes: bool = True,
+                           log: Callable[[str], None] = lambda s: None) -> IdentificationResult:
+    """The reference models of every operating regime the data hold enough of.
+
+    1. The T2 sensor's time constant, from the base regime's data (:func:`identify_t2_tau`),
+       when the data have the ``T2_rate`` feature; every regime's data compensated with it.
+    2. The base regime (:data:`REGIMES`, first): the paper's five maps of (n, rho2), as
+       :func:`identify_reference_models` (ECU tables, storage correction).
+    3. With ``further_regimes``, each further regime with at least
+       :data:`MIN_REGIME_SEGMENTS` segments: maps of
+       (n, rho2, egr_cmd, fuel, vgt, T2) evaluated directly (no table holds six inputs), its
+       eta_V corrected for the stored air with the base regime's coefficient (the boost
+       volume's physics does not change with the valve).
+    Returns the base regime's result; its model set holds the others in ``regimes``.
+    """
+    cfg = config or IdentificationConfig()
+    labels = regime_labels(data)
+    sel = {name: labels == name for name, _, _ in REGIMES}
+    base_name = REGIMES[0][0]
+    if sel[base_name].sum() < 10 * cfg.min_samples_per_model:
+        raise ValueError(f"only {int(sel[base_name].sum())} segments with the EGR valve "
+                         "closed and the flaps open: too few to identify the base regime")
+    rows = {k: {c: np.asarray(v)[m] for c, v in data.items()} for k, m in sel.items()}
+    tau = 0.0
+    if "T2_rate" in data:
+        # the sensor's lag shows in the temperature transients (the EGR valve opening and
+        # closing in the ECU's passes among them): identified on all of the base regime's
+        # segments, the maps then on those whose temperature has settled (as on line)
+        tau = identify_t2_tau(rows[base_name], cfg)
+        log(f"[identify] T2 sensor time constant {tau:.2f} s")
+        rows = {k: compensate_t2(v, tau) for k, v in rows.items()}
+        rows = {k: {c: v[np.abs(d["T2_rate"]) <= TEMPERATURE_SETTLED] for c, v in d.items()}
+                for k, d in rows.items()}
+    res = identify_reference_models(rows[base_name], config=cfg, progress=progress)
+    base = res.models
+    base.info.update(regime=base_name, t2_tau=tau,
+                     regime_nrmse_test={base_name: res.nrmse_test},
+                     regime_segments={base_name: int(sel[base_name].sum())})
+    coeff = float(base.info.get("storage_coeff", 0.0))
+    for name, _, _ in REGIMES[1:] if further_regimes else ():
+        d = rows[name]
+        if d["n"].size < MIN_REGIME_SEGMENTS or not all(k in d for k in OPEN_EGR_INPUTS):
+            continue
+        # every other segment: neighbours 15 ms apart repeat each other, and six-input maps
+        # cost several times the paper's two-input ones
+        d = {k: v[::REGIME_STRIDE] for k, v in d.items()}
+        if "storage_x" in d:
+            d["eta_v"] = d["eta_v"] - coeff * np.nan_to_num(d["storage_x"])
+        # the joint coverage over the operating point (n, rho2): a six-input grid is empty
+        rcfg = dataclasses.replace(cfg, extra_inputs=OPEN_EGR_INPUTS, tables=False,
+                                   storage_correction=False, coverage_inputs=2)
+        r = identify_reference_models(d, config=rcfg, progress=progress)
+        r.models.info.update(regime=name, t2_tau=tau)
+        base.regimes.append(r.models)
+        base.info["regime_nrmse_test"][name] = r.nrmse_test
+        base.info["regime_segments"][name] = int(d["n"].size)
+        log(f"[identify] regime {name}: {d['n'].size} segments, held-out NRMSE "
+            + ", ".join(f"{k} {v:.3f}" for k, v in r.nrmse_test.items()))
+    return res
 
 
 def _table(m: Lolimot, bps, inputs: tuple[str, ...], name: str) -> LookupTable | None:

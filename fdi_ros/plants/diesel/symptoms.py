@@ -37,16 +37,18 @@ from fdi_ros.core.fst import isolate as _isolate
 from fdi_ros.core.fst import load_fault_symptom_tables as _load_tables
 from fdi_ros.core.sliding import SlidingRange
 from fdi_ros.core.symptoms import (
+    TOO_FAST,
     TRANSIENT_SUFFIX,
     SymptomConfig,
     SymptomGenerator,
     SymptomState,
     load_thresholds,
+    rate_status,
 )
 from fdi_ros.core.symptoms import calibrate_thresholds as _calibrate
 from fdi_ros.core.types import FeatureVector, ResidualVector
 from fdi_ros.plants.diesel.ecu import ACTUATOR_SETTLE_S, GATED_ACTUATORS, actuator_status
-from fdi_ros.plants.diesel.reference import ReferenceModelSet, wrap_phase
+from fdi_ros.plants.diesel.reference import TEMPERATURE_SETTLED, ReferenceModelSet, wrap_phase
 
 if TYPE_CHECKING:
     from fdi_ros.core.lolimot import Lolimot
@@ -350,10 +352,22 @@ class QuasiStationarity:
         df = float(max(fs) - min(fs)) if all(math.isfinite(f) for f in fs) else 0.0
         return dn <= c.max_speed_change and df <= c.max_fuel_change, dn, df
 
+    def rates_beyond(self, fv: FeatureVector, invalid: bool = False) -> str:
+        """The transient status if a feature of the gate's ``max_rates`` (``invalid``: of
+        its ``invalid_rates``) is beyond its limit ("" if none; a missing or unknown rate
+        counts as settled)."""
+        c = self.config
+        if c is None:
+            return ""
+        lim = c.invalid_rates if invalid else c.max_rates
+        return rate_status({k: fv.get(k) for k in lim if k in fv.names}, lim,
+                           TOO_FAST if invalid else "transient")
+
     def actuators_moved(self) -> str:
         """The "not valid" status if an actuator command moved within ACTUATOR_SETTLE_S."""
         ranges = {k: r.range() for k, r in self._acts.items()}
-        return actuator_status({k: float(v) for k, v in ranges.items() if v is not None})
+        return actuator_status({k: float(v) for k, v in ranges.items() if v is not None},
+                               self.config.actuator_move if self.config else None)
 
     def apply(self, fv: FeatureVector, r: np.ndarray, valid: bool, status: str,
               regime: str = "") -> tuple[np.ndarray, bool, str, str]:
@@ -369,9 +383,12 @@ class QuasiStationarity:
         ok, dn, df = self.settled()
         if not np.isfinite(dp) or not np.isfinite(dn):
             return r, False, "not valid here: settling (too little history after a gap)", regime
+        fast = self.rates_beyond(fv, invalid=True)
+        if fast:
+            return r, False, fast, regime
         why = "" if ok else (f"not valid here: transient inputs (speed moved {dn:.0f} rpm, "
                              f"fuel {df:.1f} mg within {c.settle_s:g} s)")
-        why = why or self.actuators_moved()
+        why = why or self.actuators_moved() or self.rates_beyond(fv)
         if why and c.transients == "not_valid":
             return r, False, why, regime
         r = r.copy()
@@ -758,6 +775,22 @@ def run_symptoms(models: ReferenceModelSet, config: SymptomConfig,
     return [gen.update(rv) for rv in stream_residuals(models, features, config=config)]
 
 
+# With transients diagnosed as a regime of their own: the boost temperature still moving faster
+# than the identification allowed (reference.TEMPERATURE_SETTLED) makes a segment transient
+# too; and only a large move of an actuator command (the EGR valve opening or closing, the
+# flaps switching) within ACTUATOR_SETTLE_S, since the regimes' maps take the EGR command as
+# an input and undo the T2 sensor's lag.
+TEMPERATURE_SETTLING = {"T2_rate": TEMPERATURE_SETTLED}
+# ... and beyond this rate [K/s] (the moment an EGR valve closed at full load: the sensor still
+# reads the hot recirculated gas, 100 K and more above the charge) not valid at all
+TEMPERATURE_TOO_FAST = {"T2_rate": 3.0 * TEMPERATURE_SETTLED}
+REGIME_ACTUATOR_MOVE = 0.2
+# Margin of the thresholds of the regimes beyond the base one on their largest fault-free
+# excursion (the base regime's 1.25): their six-input maps rest on the identification passes
+# alone and the drives they see lie between those passes' trajectories.
+FURTHER_REGIME_MARGIN = 2.0
+
+
 def _unit_config(models: ReferenceModelSet, **settings: Any) -> SymptomConfig:
     """Centre 0 and threshold 1 for every regime the model set can produce (the raw residuals
     pass unchanged: for calibration)."""
@@ -790,6 +823,10 @@ def calibrate_from_fault_free(models: ReferenceModelSet,
     one = not len(features) or isinstance(features[0], FeatureVector)
     streams: list[list[FeatureVector]] = [list(f) for f in (  # type: ignore[arg-type]
         [features] if one else features)]
+    if transients == "regime":
+        kw.setdefault("max_rates", TEMPERATURE_SETTLING)
+        kw.setdefault("invalid_rates", TEMPERATURE_TOO_FAST)
+        kw.setdefault("actuator_move", REGIME_ACTUATOR_MOVE)
     probe = _unit_config(models, rate_lag=rate_lag)
     x, r = [], []
     for feats in streams:
@@ -810,10 +847,17 @@ def calibrate_from_fault_free(models: ReferenceModelSet,
         coeff = float(xa @ ra / den) if den > 0 else 0.0
     gate = _unit_config(models, rate_lag=rate_lag, storage_coeff=coeff, settle_s=settle_s,
                         max_speed_change=max_speed_change, max_fuel_change=max_fuel_change,
-                        transients=transients)
+                        transients=transients, max_rates=kw.get("max_rates", {}),
+                        invalid_rates=kw.get("invalid_rates", {}),
+                        actuator_move=kw.get("actuator_move"))
     rvs = [rv for feats in streams for rv in stream_residuals(models, feats, config=gate)]
     R = np.array([rv.values for rv in rvs])
-    valid = np.array([rv.valid for rv in rvs])
+    # Transients are diagnosed in the base regime only: elsewhere the maps rest on the
+    # identification passes alone (their transients stay "not valid here", no thresholds).
+    valid = np.array([rv.valid and (not rv.regime.endswith(TRANSIENT_SUFFIX) or
+                                    rv.regime == models.regime + TRANSIENT_SUFFIX)
+                      for rv in rvs])
+    kw.setdefault("margins", {ms.regime: FURTHER_REGIME_MARGIN for ms in models.regimes})
     return calibrate_thresholds(R, valid, storage_coeff=coeff, settle_s=settle_s,
                                 max_speed_change=max_speed_change,
                                 max_fuel_change=max_fuel_change, rate_lag=rate_lag,

@@ -101,7 +101,7 @@ def test_outside_every_regime_not_valid_with_each_regimes_reason(regimes):
     fresh["swirl_cmd"] = np.ones(fresh["n"].size)     # flaps closed: no regime has them
     _, valid, _ = parity(regimes, fresh)
     assert not valid.any()
-    fv = _fvs({**{k: v for k, v in fresh.items()}, "t": fresh["t"]})[50]
+    fv = _fvs(fresh)[50]
     rv = stream_residuals(regimes, [fv])[0]
     assert not rv.valid and "no operating regime covers it" in rv.status
     assert "egr_open_flaps_open: swirl_cmd = 1 outside" in rv.status

@@ -183,8 +183,8 @@ def region_status(models: ReferenceModelSet, data: Mapping[str, object],
             out.append("")
             continue
         if models.t2_tau > 0 and not np.isfinite(raw["T2_rate"][i]):
-            out.append("not valid here: T2 sensor rate unknown (too little history after a "
-                       "gap)")
+            out.append("not valid here: boost temperature rate unknown (too little history "
+                       "after a gap)")
             continue
         if len(sets) == 1:
             w = checks[0][i]

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from fdi_ros import msgs
-from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, ensure_loopback_env
+from fdi_ros.nodes.common import DATA_IN_QOS, LATCHED_QOS, ensure_loopback_env
 
 
 @dataclass
@@ -66,8 +66,9 @@ class GraphWatcher:
         now = time.monotonic
         sub = self.node.create_subscription
         sub(Diagnosis, "/fdi/diagnosis",
-            lambda m: self.seen.diagnoses.append((now(), msgs.to_diagnosis(m))), DATA_QOS)
-        sub(Symptoms, "/fdi/symptoms", lambda m: self.seen.symptoms.append((now(), m)), DATA_QOS)
+            lambda m: self.seen.diagnoses.append((now(), msgs.to_diagnosis(m))), DATA_IN_QOS)
+        sub(Symptoms, "/fdi/symptoms", lambda m: self.seen.symptoms.append((now(), m)),
+            DATA_IN_QOS)
         sub(FaultEvent, "/fdi/fault_truth",
             lambda m: self.seen.truth.append((now(), msgs.to_fault_event(m))), LATCHED_QOS)
         sub(DiagnosticArray, "/diagnostics",
@@ -80,9 +81,9 @@ class GraphWatcher:
             self.seen.blocks.append((now(), float(m.stamp_s[-1])))
 
         if watch_features:
-            sub(Features, "/fdi/features", on_features, DATA_QOS)
+            sub(Features, "/fdi/features", on_features, DATA_IN_QOS)
         if watch_blocks:
-            sub(SensorBlock, "/fdi/sensor_block", on_block, DATA_QOS)
+            sub(SensorBlock, "/fdi/sensor_block", on_block, DATA_IN_QOS)
         if watch_end:
             from std_msgs.msg import Header
 

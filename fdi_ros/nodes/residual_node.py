@@ -23,7 +23,7 @@ from typing import Any
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
 from fdi_ros import msgs
-from fdi_ros.nodes.common import DATA_QOS, Param, declare_params, run_node
+from fdi_ros.nodes.common import DATA_IN_QOS, DATA_QOS, Param, declare_params, run_node
 
 # Read on configure: a change applies at the next configure (hence read-only while running).
 PARAMS = (
@@ -69,7 +69,7 @@ class ResidualNode(LifecycleNode):
                 Residuals, self.get_parameter("residuals_topic").value, DATA_QOS)
             self._sub = self.create_subscription(
                 Features, self.get_parameter("features_topic").value, self._on_features,
-                DATA_QOS)
+                DATA_IN_QOS)
         except Exception:
             self.get_logger().error(f"configure failed:\n{traceback.format_exc()}")
             self._release()

@@ -45,9 +45,15 @@ class ModelFeed(Generic[T]):
         self._started = False  # answering for the current listing already
         self._kept: deque[tuple[int, T]] = deque(maxlen=keep)
 
+    @property
+    def answering(self) -> bool:
+        """Active and started: every feature vector is answered as it comes; the diagnoses
+        are not needed until the node leaves the active state (:meth:`deactivate`)."""
+        return self.active and not self.waiting
+
     def features(self, index: int, item: T) -> list[T]:
         """Features ``index`` arrived."""
-        if self.active and not self.waiting:
+        if self.answering:
             return [item]
         self._kept.append((int(index), item))
         return []

@@ -3,15 +3,12 @@
 Lifecycle (standard services ``/<node>/change_state``, ``/<node>/get_state``):
 
 * ``configure``: load the model named by the parameters (``model_id``, ``model``: a spec or
-  file understood by :func:`fdi_ros.plants.load_residual_model`); create the
-  residual publisher and the features and diagnosis subscriptions. A model that fails to
-  load -> FAILURE, with the reason logged (rclpy would otherwise swallow it).
-* ``activate``: the model's dynamic state is reset, so a model taken on line after an
-  isolation starts from the measured state; residuals are published from now on, from the
-  step after the bank switch that brought it on line (the features since then were kept:
-  :class:`fdi_ros.core.modelfeed.ModelFeed`), as offline.
-* ``deactivate``: nothing is published (features are kept for the next activation).
-* ``cleanup``: model, publisher and subscription released.
+  file understood by :func:`fdi_ros.plants.load_residual_model`); residual publisher and
+  features subscription. A model that fails to load -> FAILURE, the reason logged.
+* ``activate``: the model's state is reset (it starts from the measured state); residuals
+  from the step after the bank switch that brought it on line (the features since then were
+  kept, /fdi/diagnosis followed while not active: :class:`fdi_ros.core.modelfeed.ModelFeed`).
+* ``deactivate``: nothing is published; ``cleanup``: model, publisher, subscriptions gone.
 
 Parameters: ``model_id`` (string, required), ``model`` (spec string / path, required),
 ``features_topic`` (/fdi/features), ``residuals_topic`` (/fdi/residuals).
@@ -43,7 +40,7 @@ class ResidualNode(LifecycleNode):
         declare_params(self, PARAMS)
         self._model: Any = None
         self._pub: Any = None
-        self._subs: list[Any] = []
+        self._subs: dict[str, Any] = {}
         self._fac = msgs.MessageFactory("rclpy")
         self._feed: ModelFeed[Any] = ModelFeed(self.model_id)
         self.n_published = 0
@@ -66,14 +63,15 @@ class ResidualNode(LifecycleNode):
 
                 spec = yaml.safe_load(spec)
             self._model = load_residual_model(spec, model_id=mid)
-            from fdi_msgs.msg import Diagnosis, Features, Residuals
+            from fdi_msgs.msg import Features, Residuals
 
             self._pub = self.create_lifecycle_publisher(
                 Residuals, self.get_parameter("residuals_topic").value, DATA_QOS)
             self._feed = ModelFeed(mid)
-            self._subs = [self.create_subscription(c, t, f, DATA_IN_QOS) for c, t, f in (
-                (Features, self.get_parameter("features_topic").value, self._on_features),
-                (Diagnosis, "/fdi/diagnosis", self._on_diagnosis))]
+            self._subs["features"] = self.create_subscription(
+                Features, self.get_parameter("features_topic").value, self._on_features,
+                DATA_IN_QOS)
+            self._watch()
         except Exception:
             self.get_logger().error(f"configure failed:\n{traceback.format_exc()}")
             self._release()
@@ -96,6 +94,7 @@ class ResidualNode(LifecycleNode):
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
         self._feed.deactivate()
+        self._watch()
         self.get_logger().info(f"model {self.model_id!r} off line")
         return super().on_deactivate(state)
 
@@ -103,17 +102,15 @@ class ResidualNode(LifecycleNode):
         self._release()
         return TransitionCallbackReturn.SUCCESS
 
-    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()
-        return TransitionCallbackReturn.SUCCESS
+    on_shutdown = on_cleanup
 
     def _release(self) -> None:
         self._feed.deactivate()
-        for sub in self._subs:
+        for sub in self._subs.values():
             self.destroy_subscription(sub)
         if self._pub is not None:
             self.destroy_lifecycle_publisher(self._pub)
-        self._subs, self._pub, self._model = [], None, None
+        self._subs, self._pub, self._model = {}, None, None
 
     # -- data -----------------------------------------------------------------------------------
     def _on_features(self, m: Any) -> None:
@@ -132,6 +129,17 @@ class ResidualNode(LifecycleNode):
                 continue
             self._pub.publish(self._fac.residuals(rv))
             self.n_published += 1
+        self._watch()
+
+    def _watch(self) -> None:  # /fdi/diagnosis only while the feed needs it (not answering)
+        need = self._model is not None and not self._feed.answering
+        if need and "diagnosis" not in self._subs:
+            from fdi_msgs.msg import Diagnosis
+
+            self._subs["diagnosis"] = self.create_subscription(
+                Diagnosis, "/fdi/diagnosis", self._on_diagnosis, DATA_IN_QOS)
+        elif not need and "diagnosis" in self._subs:
+            self.destroy_subscription(self._subs.pop("diagnosis"))
 
 
 def main(args: list[str] | None = None) -> int:

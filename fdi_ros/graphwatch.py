@@ -55,12 +55,12 @@ class GraphWatcher:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from fdi_msgs.msg import Diagnosis, FaultEvent, Features, SensorBlock, Symptoms
-        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.experimental import EventsExecutor
 
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node(name, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor = EventsExecutor(context=self.context)  # as the node processes
         self.executor.add_node(self.node)
         self.seen = Seen()
         now = time.monotonic

@@ -187,12 +187,13 @@ def identification_table(streams) -> dict:
 def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
                  threshold_seed: int = THRESHOLD_SEED, mapping=None, config=None,
                  progress: bool = True, figures=None, log=lambda s: None,
-                 further_regimes: bool = True):
+                 further_regimes: bool = False):
     """Identify, save, calibrate the fault-free thresholds; returns (result, symptom config or
     None, report dict). ``data_source`` and ``fault_free``: one source (scenario, bag, CSV) or
     a list of them; each source is a stream of its own (e.g. the EGR-closed identification
-    cycle and the part-load passes with the ECU's maps), and every operating regime with
-    enough data gets models of its own (:func:`identify_regime_models`)."""
+    cycle and the part-load passes with the ECU's maps); with ``further_regimes`` every
+    operating regime with enough data gets models of its own (:func:`identify_regime_models`),
+    else the base regime's only."""
     import numpy as np
 
     from fdi_ros.plants.diesel.reference import (
@@ -265,8 +266,7 @@ def build_reference_models(out, *, seed: int = 0, progress: bool = True, log=lam
     ``resolve`` turns the repository-relative scenario paths into paths."""
     return build_models([str(resolve(s)) for s in REFERENCE_SOURCES], out=out, seed=seed,
                         fault_free=[str(resolve(s)) for s in THRESHOLD_SOURCES],
-                        threshold_seed=THRESHOLD_SEED, progress=progress, log=log,
-                        further_regimes=False)
+                        threshold_seed=THRESHOLD_SEED, progress=progress, log=log)
 
 
 def identification_figures(res, data, outdir) -> list[Path]:

@@ -149,13 +149,12 @@ def calibrate_from_features(mset, feats, **kw):
     ``feats``: one stream of feature vectors or several. Also returns the number of segments
     with a valid residual under the calibrated gate."""
     from fdi_ros.core.types import FeatureVector
-    from fdi_ros.plants.diesel.symptoms import calibrate_from_fault_free, stream_residuals
+    from fdi_ros.plants.diesel.symptoms import calibrate_with_residuals, valid_under
 
     streams = [feats] if not feats or isinstance(feats[0], FeatureVector) else list(feats)
     kw.setdefault("transients", "regime")
-    cfg = calibrate_from_fault_free(mset, streams, **kw)
-    n_used = sum(rv.valid for f in streams for rv in stream_residuals(mset, f, config=cfg))
-    return cfg, n_used
+    cfg, rvs = calibrate_with_residuals(mset, streams, **kw)
+    return cfg, valid_under(cfg, rvs)
 
 
 def identification_table(streams) -> dict:

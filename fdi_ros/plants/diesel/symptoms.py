@@ -805,21 +805,32 @@ def _unit_config(models: ReferenceModelSet, **settings: Any) -> SymptomConfig:
 
 def calibrate_from_fault_free(models: ReferenceModelSet,
                               features: Sequence[FeatureVector]
-                              | Sequence[Sequence[FeatureVector]], *,
-                              settle_s: float = 1.0, max_speed_change: float = 50.0,
-                              max_fuel_change: float = 1.0,
-                              rate_lag: int = 2, storage_correction: bool = True,
-                              transients: str = "not_valid", **kw) -> SymptomConfig:
+                              | Sequence[Sequence[FeatureVector]], **kw: Any) -> SymptomConfig:
     """Thresholds from fault-free (transient) feature vectors: one stream, or several
     (e.g. drives with the EGR valve closed and as the ECU runs it), each gated on its own.
 
-    1. ``storage_coeff`` by least squares of the static r_eta on ``-(dp2/dt)/(n p2)`` over all
-       in-region segments (the transients give the leverage);
+    1. ``storage_coeff``: the one identified with the static maps (``models.info``), else by
+       least squares of the static r_eta on ``-(dp2/dt)/(n p2)`` over all in-region segments
+       (the transients give the leverage);
     2. residuals corrected and gated with the rate limits;
     3. :func:`calibrate_thresholds` per operating regime: the quasi-stationary segments of
        each regime, and with ``transients="regime"`` its transient segments as a regime of
        their own.
     """
+    return calibrate_with_residuals(models, features, **kw)[0]
+
+
+def calibrate_with_residuals(models: ReferenceModelSet,
+                             features: Sequence[FeatureVector]
+                             | Sequence[Sequence[FeatureVector]], *,
+                             settle_s: float = 1.0, max_speed_change: float = 50.0,
+                             max_fuel_change: float = 1.0,
+                             rate_lag: int = 2, storage_correction: bool = True,
+                             transients: str = "not_valid",
+                             **kw: Any) -> tuple[SymptomConfig, list[ResidualVector]]:
+    """:func:`calibrate_from_fault_free`, and the gated residual vectors it calibrated on
+    (those the returned configuration gives, but for the validity of a regime it has no
+    thresholds for: see :func:`valid_under`)."""
     one = not len(features) or isinstance(features[0], FeatureVector)
     streams: list[list[FeatureVector]] = [list(f) for f in (  # type: ignore[arg-type]
         [features] if one else features)]
@@ -829,7 +840,8 @@ def calibrate_from_fault_free(models: ReferenceModelSet,
         kw.setdefault("actuator_move", REGIME_ACTUATOR_MOVE)
     probe = _unit_config(models, rate_lag=rate_lag)
     x, r = [], []
-    for feats in streams:
+    known = storage_correction and "storage_coeff" in models.info
+    for feats in ([] if known else streams):
         rvs = stream_residuals(models, feats, config=probe)   # static, not gated
         qs = QuasiStationarity(probe)
         for fv, rv in zip(feats, rvs):
@@ -838,7 +850,7 @@ def calibrate_from_fault_free(models: ReferenceModelSet,
                 x.append(-dp / (fv.get("n") * fv.get("p2")))
                 r.append(rv.values[0])
     coeff = 0.0
-    if storage_correction and "storage_coeff" in models.info:
+    if known:
         coeff = float(models.info["storage_coeff"])   # identified with the static maps
     elif storage_correction and len(x) > 20:
         xa, ra = np.asarray(x), np.asarray(r)
@@ -858,8 +870,16 @@ def calibrate_from_fault_free(models: ReferenceModelSet,
                                     rv.regime == models.regime + TRANSIENT_SUFFIX)
                       for rv in rvs])
     kw.setdefault("margins", {ms.regime: FURTHER_REGIME_MARGIN for ms in models.regimes})
-    return calibrate_thresholds(R, valid, storage_coeff=coeff, settle_s=settle_s,
-                                max_speed_change=max_speed_change,
-                                max_fuel_change=max_fuel_change, rate_lag=rate_lag,
-                                regimes=[rv.regime for rv in rvs], base_regime=models.regime,
-                                transients=transients, **kw)
+    cfg = calibrate_thresholds(R, valid, storage_coeff=coeff, settle_s=settle_s,
+                               max_speed_change=max_speed_change,
+                               max_fuel_change=max_fuel_change, rate_lag=rate_lag,
+                               regimes=[rv.regime for rv in rvs], base_regime=models.regime,
+                               transients=transients, **kw)
+    return cfg, rvs
+
+
+def valid_under(cfg: SymptomConfig, rvs: Sequence[ResidualVector]) -> int:
+    """How many of the gated residual vectors ``rvs`` (of :func:`calibrate_with_residuals`)
+    are valid diagnoses under ``cfg``: valid and of a regime it has thresholds for (the gate
+    is the same, so this is what :func:`stream_residuals` with ``cfg`` would count)."""
+    return sum(1 for rv in rvs if rv.valid and cfg.knows(rv.regime))

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from fdi_ros import msgs
-from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, ensure_loopback_env
+from fdi_ros.nodes.common import DATA_IN_QOS, LATCHED_QOS, ensure_loopback_env
 
 
 @dataclass
@@ -55,19 +55,20 @@ class GraphWatcher:
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from fdi_msgs.msg import Diagnosis, FaultEvent, Features, SensorBlock, Symptoms
-        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.experimental import EventsExecutor
 
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node(name, context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor = EventsExecutor(context=self.context)  # as the node processes
         self.executor.add_node(self.node)
         self.seen = Seen()
         now = time.monotonic
         sub = self.node.create_subscription
         sub(Diagnosis, "/fdi/diagnosis",
-            lambda m: self.seen.diagnoses.append((now(), msgs.to_diagnosis(m))), DATA_QOS)
-        sub(Symptoms, "/fdi/symptoms", lambda m: self.seen.symptoms.append((now(), m)), DATA_QOS)
+            lambda m: self.seen.diagnoses.append((now(), msgs.to_diagnosis(m))), DATA_IN_QOS)
+        sub(Symptoms, "/fdi/symptoms", lambda m: self.seen.symptoms.append((now(), m)),
+            DATA_IN_QOS)
         sub(FaultEvent, "/fdi/fault_truth",
             lambda m: self.seen.truth.append((now(), msgs.to_fault_event(m))), LATCHED_QOS)
         sub(DiagnosticArray, "/diagnostics",
@@ -80,9 +81,9 @@ class GraphWatcher:
             self.seen.blocks.append((now(), float(m.stamp_s[-1])))
 
         if watch_features:
-            sub(Features, "/fdi/features", on_features, DATA_QOS)
+            sub(Features, "/fdi/features", on_features, DATA_IN_QOS)
         if watch_blocks:
-            sub(SensorBlock, "/fdi/sensor_block", on_block, DATA_QOS)
+            sub(SensorBlock, "/fdi/sensor_block", on_block, DATA_IN_QOS)
         if watch_end:
             from std_msgs.msg import Header
 

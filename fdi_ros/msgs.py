@@ -161,23 +161,24 @@ class MessageFactory:
         return self.cls("Residuals")(
             header=self.header(r.t), model_id=r.model_id, index=int(r.index), t_s=float(r.t),
             valid=bool(r.valid), status=r.status, names=list(r.names), units=list(r.units),
-            values=_f64(r.values, self.rclpy_style), norm=float(r.norm))
+            values=_f64(r.values, self.rclpy_style), norm=float(r.norm), regime=r.regime)
 
     def symptoms(self, *, index: int, t: float, valid: bool, status: str, names: Any,
                  levels: Any, residuals: Any, threshold_low: Any, threshold_high: Any,
-                 threshold_intense: Any) -> Any:
+                 threshold_intense: Any, regime: str = "") -> Any:
         s = self.rclpy_style
         return self.cls("Symptoms")(
             header=self.header(t), index=int(index), t_s=float(t), valid=bool(valid),
             status=status, names=list(names), levels=_i8(levels, s),
             residuals=_f64(residuals, s), threshold_low=_f64(threshold_low, s),
-            threshold_high=_f64(threshold_high, s), threshold_intense=_f64(threshold_intense, s))
+            threshold_high=_f64(threshold_high, s), threshold_intense=_f64(threshold_intense, s),
+            regime=regime)
 
     def symptom_state(self, index: int, t: float, s: Any) -> Any:
         """Symptoms message from a symptom stage's state record."""
         return self.symptoms(index=index, t=t, **{f: getattr(s, f) for f in (
             "valid", "status", "names", "levels", "residuals", "threshold_low",
-            "threshold_high", "threshold_intense")})
+            "threshold_high", "threshold_intense", "regime")})
 
     def diagnosis(self, d: Diagnosis) -> Any:
         return self.cls("Diagnosis")(
@@ -220,7 +221,8 @@ def to_features(m: Any) -> FeatureVector:
 def to_residuals(m: Any) -> ResidualVector:
     return ResidualVector(model_id=m.model_id, index=int(m.index), t=float(m.t_s),
                           valid=bool(m.valid), status=m.status, names=tuple(m.names),
-                          units=tuple(m.units), values=_np(m.values), norm=float(m.norm))
+                          units=tuple(m.units), values=_np(m.values), norm=float(m.norm),
+                          regime=m.regime)
 
 
 def to_diagnosis(m: Any) -> Diagnosis:
@@ -242,7 +244,8 @@ def to_fault_event(m: Any) -> FaultEvent:
 def symptoms_dict(m: Any) -> dict:
     """A Symptoms message as plain Python (for JSON output and tests)."""
     return {"index": int(m.index), "t": float(m.t_s), "valid": bool(m.valid),
-            "status": m.status, "levels": dict(zip(m.names, (int(v) for v in m.levels))),
+            "status": m.status, "regime": m.regime,
+            "levels": dict(zip(m.names, (int(v) for v in m.levels))),
             "residuals": dict(zip(m.names, (float(v) for v in m.residuals)))}
 
 

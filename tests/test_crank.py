@@ -142,6 +142,45 @@ def test_streaming_equals_batch_for_any_block_split():
     assert [g.index for g in got] == list(batch.index)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_rate_features_are_backward_differences_carried_across_blocks(seed):
+    """``<ch>_rate``: the difference of the segment means over ``rate_lag`` consecutive valid
+    segments divided by their time apart; any block split gives the same; an invalid segment
+    (here a NaN sample) restarts the history: NaN for the next ``rate_lag`` segments."""
+    rng = np.random.default_rng(seed)
+    lag = int(rng.integers(1, 6))
+    a = np.arange(0.0, 180.0 * 40)
+    t = a / 12000.0
+    T2 = 320.0 + 30.0 * np.sin(2 * np.pi * t / 0.3)          # a slow sensor signal
+    maf = _sig(a, 165.0, 20.0, 10.0)
+    bad_seg = int(rng.integers(12, 25))
+    maf[bad_seg * 180 + 50] = np.nan
+    seg_kw = {**ENGINE, "rate_channels": ("T2",), "rate_lag": lag}
+    whole = CrankSegmenter(**seg_kw).push_table(_block(a, t, maf, maf * 1e3, T2=T2))
+    j = whole.names.index("T2_rate")
+    assert whole.units[j] == "K/s"
+    means, ends, ok = whole.column("T2"), whole.t_end, whole.valid
+    for k in range(whole.index.size):
+        window = range(k - lag, k + 1)
+        if k >= lag and all(ok[i] for i in window):
+            want = (means[k] - means[k - lag]) / (ends[k] - ends[k - lag])
+            assert whole.values[k, j] == pytest.approx(want, rel=1e-12)
+        else:
+            assert np.isnan(whole.values[k, j])
+    assert np.isnan(whole.values[bad_seg + 1: bad_seg + 1 + lag, j]).all()
+    assert np.isfinite(whole.values[bad_seg + 1 + lag, j])
+    seg = CrankSegmenter(**seg_kw)
+    cuts = np.sort(rng.choice(np.arange(1, a.size - 1), size=30, replace=False))
+    got = []
+    for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, a.size]):
+        got += seg.push(_block(a[lo:hi], t[lo:hi], maf[lo:hi], maf[lo:hi] * 1e3, T2=T2[lo:hi]))
+    np.testing.assert_allclose([g.values[j] for g in got], whole.values[:, j], rtol=1e-10,
+                               atol=1e-8)
+    with pytest.raises(ValueError, match="rate channels"):
+        CrankSegmenter(**{**seg_kw, "rate_channels": ("egt",)}).push_table(
+            _block(a, t, maf, maf * 1e3, T2=T2))
+
+
 def test_eta_v_and_density_formula():
     a = np.arange(0.0, 721.0)
     maf = np.full(a.size, 165.0)

@@ -105,6 +105,28 @@ def test_seeded_runs_are_reproducible():
     assert np.allclose(r1.truth["eta_v"], r3.truth["eta_v"])     # noise only differs
 
 
+@pytest.mark.parametrize("seconds", [3.0, 7.3])
+def test_chunked_simulation_gives_the_samples_and_features_of_the_scenario_blocks(seconds):
+    """A features-only run advances the plant many blocks at a time (less overhead per
+    block); its noise is drawn per scenario block, so samples, segments and the end of the run
+    are those of the block-by-block run (up to rounding)."""
+    from fdi_ros.plants.diesel.scenario import iter_simulate
+
+    sc = dataclasses.replace(load_cases(SCEN / "diesel_realistic_drive.yaml")[0],
+                             duration_s=seconds)
+    one = [b for b, _ in iter_simulate(sc, seed=5)]
+    many = [b for b, _ in iter_simulate(sc, seed=5, chunk=7)]
+    t1, tm = (np.concatenate([b.t for b in bs]) for bs in (one, many))
+    assert t1.size == tm.size and t1[-1] >= seconds > t1[-1 - one[0].t.size]
+    assert np.allclose(t1, tm, rtol=0, atol=1e-9)
+    v1, vm = (np.concatenate([b.values for b in bs], axis=1) for bs in (one, many))
+    assert np.allclose(v1, vm, rtol=1e-12, atol=1e-9)      # same noise, same order
+    f1 = simulate(sc, seed=5, keep_blocks=True).features     # block by block
+    fm = simulate(sc, seed=5, keep_blocks=False).features    # chunked
+    assert np.array_equal(f1.index, fm.index)
+    assert np.allclose(f1.values, fm.values, rtol=1e-10, atol=1e-9, equal_nan=True)
+
+
 def test_maf_pulsation_peaks_near_2000_rpm_and_phase_falls_with_speed():
     # air-path resonance (Helmholtz-like: duct inertance vs. volumes) near the 180 deg CA
     # fundamental at 2000 rpm (66.7 Hz)

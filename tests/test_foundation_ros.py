@@ -4,6 +4,7 @@ and a live topic recorded into a rosbag2 MCAP bag read back by rosbags and mcap.
 from __future__ import annotations
 
 import math
+import select
 import signal
 import sys
 from pathlib import Path
@@ -153,3 +154,26 @@ def test_live_topics_recorded_to_mcap_equal_what_was_sent(ros, tmp_path: Path):
     assert seen["/fdi/diagnosis"].fault_model == "leak_ic_engine"
     assert list(seen["/fdi/symptoms"].levels) == [-1, 2]
     assert np.allclose(seen["/fdi/sensor_block"].values, sent["/fdi/sensor_block"].values)
+
+
+def test_data_reader_behind_many_writers_loses_nothing(ros):
+    """A data reader that takes nothing while 16 writers send 4 x its depth (a supervisor busy
+    writing a snapshot bag while the bank answers) gets every message once it reads again: a
+    keep-last queue is shared by all writers of a topic and lost the oldest residuals."""
+    from fdi_msgs.msg import Residuals
+
+    from fdi_ros.nodes.common import DATA_IN_QOS
+
+    writers, each = 16, DATA_IN_QOS.depth // 4
+    got: set[tuple[str, int]] = set()
+    ros.node.create_subscription(Residuals, "/fdi/residuals",
+                                 lambda m: got.add((m.model_id, m.index)), DATA_IN_QOS)
+    proc = spawn_script("residual_burst.py", str(writers), str(each))
+    try:
+        assert proc.stdout is not None  # "sent": all acknowledged, none taken yet
+        assert select.select([proc.stdout], [], [], 60.0)[0], "the writers never finished"
+        assert proc.stdout.readline().strip() == "sent"
+        ros.spin_until(lambda: len(got) == writers * each, 30.0,
+                       f"{writers * each} residuals", [proc])
+    finally:
+        stop(proc)

@@ -153,7 +153,15 @@ def test_frozen_model_reported_silent_then_back(live):
     assert run.isolated_faults == ("leak_ic_engine",), lines
 
 
-def test_replay_and_offline_diagnose_agree_with_the_live_run(live, tmp_path):
+@pytest.fixture(scope="module")
+def replay(live):
+    """The recorded sensor blocks replayed through preprocessor, bank and supervisor at 4 x
+    real time: faster than the graph can follow, so the replay is held back by the diagnosis
+    (the replayer's max_ahead_s)."""
+    return run_live(CONFIG, replay=live[2], realtime_factor=4.0, timeout_s=150)
+
+
+def test_replay_and_offline_diagnose_agree_with_the_live_run(live, replay, tmp_path):
     run, _, bag_dir, _, _ = live
     # offline, same core, many times faster than real time
     out = tmp_path / "diag.json"
@@ -163,7 +171,7 @@ def test_replay_and_offline_diagnose_agree_with_the_live_run(live, tmp_path):
     assert off["isolated_faults"] == ["leak_ic_engine"]
     assert abs(off["isolation_time_s"] - run.isolation_t) <= SEGMENT_S + 1e-9
     # live replay of the recorded sensor blocks through preprocessor, bank and supervisor
-    rep, _ = run_live(CONFIG, replay=bag_dir, timeout_s=150)
+    rep, _ = replay
     assert rep.ended and rep.isolated_faults == ("leak_ic_engine",)
     assert abs(rep.isolation_t - run.isolation_t) <= SEGMENT_S + 1e-9
     assert not math.isnan(rep.first_symptom_t)
@@ -208,12 +216,12 @@ def test_model_node_that_cannot_load_its_model_is_reported(diesel_bank, tmp_path
         w.close()
 
 
-def test_replay_at_rate_4_same_isolation_and_no_segment_skipped(live):
+def test_replay_at_rate_4_same_isolation_and_no_segment_skipped(live, replay):
     """A replay faster than the graph can follow is held back by the diagnosis (the
     replayer's max_ahead_s), so it gives the live run's isolation to the segment and skips
     no segment."""
-    run, _, bag_dir, _, _ = live
-    rep, w = run_live(CONFIG, replay=bag_dir, realtime_factor=4.0, timeout_s=150)
+    run = live[0]
+    rep, w = replay
     pipe = [st for _, arr in w.seen.diagnostics for st in arr.status
             if st.name == "fdi_supervisor: pipeline"]
     assert rep.ended and rep.isolated_faults == ("leak_ic_engine",), rep.isolations

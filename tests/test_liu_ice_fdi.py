@@ -66,13 +66,36 @@ def test_scoring_oracle():
 
 
 @pytest.fixture(scope="module")
-def identified():
+def benchmark(tmp_path_factory):
+    """``fdi-ros benchmark liu-ice`` once on a subset (identification on the fault-free
+    files, diagnosis of them and of two fault files): its exit code, JSON, per-sample CSV and
+    the directory of the models it identified (the module's other tests load them)."""
+    from fdi_ros.cli import main
+
+    tmp = tmp_path_factory.mktemp("liu_benchmark")
+    data = tmp / "data"
+    data.mkdir()
+    files = ["ftp75city2_NF.csv", "wltp_NF.csv", "ftp75city2_f_pic_090.csv",
+             "ftp75city2_f_pim_110.csv"]
+    for f in files:
+        (data / f).symlink_to(DATA / f)
+    out, per, models = tmp / "b.json", tmp / "b.csv", tmp / "models"
+    rc = main(["benchmark", "liu-ice", "--data", str(data), "--json", str(out),
+               "--per-sample", str(per), "--models", str(models), "--quiet"])
+    return rc, out, per, models
+
+
+@pytest.fixture(scope="module")
+def identified(benchmark):
+    """The residual models identified on the first 70 % of the fault-free files (by the
+    benchmark run: the same identification as ``identify`` of those records) and the
+    records."""
     from fdi_ros.plants.liu_ice import FAULT_FREE
-    from fdi_ros.plants.liu_ice.identify import identify
     from fdi_ros.plants.liu_ice.live import load_record
+    from fdi_ros.plants.liu_ice.residuals import StructuredResiduals
 
     recs = [load_record(DATA / f) for f in FAULT_FREE]
-    return identify(recs), recs
+    return StructuredResiduals.load(benchmark[3]), recs
 
 
 @need_data
@@ -165,7 +188,7 @@ def test_hidden_sensor_gain_fault_is_detected_and_isolated(identified, tmp_path)
 
 
 @need_data
-def test_benchmark_cli_meets_the_acceptance_on_a_subset(tmp_path):
+def test_benchmark_cli_meets_the_acceptance_on_a_subset(benchmark, tmp_path):
     """Identification on the fault-free files, diagnosis of them and of two fault files
     (boost and manifold pressure gains), scored per sample; the full set is in the README."""
     import csv
@@ -173,15 +196,7 @@ def test_benchmark_cli_meets_the_acceptance_on_a_subset(tmp_path):
 
     from fdi_ros.cli import main
 
-    data = tmp_path / "data"
-    data.mkdir()
-    files = ["ftp75city2_NF.csv", "wltp_NF.csv", "ftp75city2_f_pic_090.csv",
-             "ftp75city2_f_pim_110.csv"]
-    for f in files:
-        (data / f).symlink_to(DATA / f)
-    out, per = tmp_path / "b.json", tmp_path / "b.csv"
-    rc = main(["benchmark", "liu-ice", "--data", str(data), "--json", str(out),
-               "--per-sample", str(per), "--models", str(tmp_path / "models"), "--quiet"])
+    rc, out, per, _ = benchmark
     assert rc == 0
     doc = json.loads(out.read_text())
     o, ff = doc["overall"], doc["fault_files"]
@@ -195,7 +210,7 @@ def test_benchmark_cli_meets_the_acceptance_on_a_subset(tmp_path):
     assert len(rows) == sum(f["samples"] for f in doc["files"])
     assert {r["isolated"] for r in rows} <= {"", "f_pic", "f_pim", "f_waf", "f_iml"}
     assert main(["benchmark", "liu-ice", "--data", str(tmp_path / "nope"), "--json",
-                 str(out), "--quiet"]) == 2
+                 str(tmp_path / "x.json"), "--quiet"]) == 2
 
 
 def test_file_labels():

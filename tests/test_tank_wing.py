@@ -142,7 +142,12 @@ def test_tank_as_a_live_two_node_graph(tmp_path):
     assert truth[0].fault == "sensor_offset" and truth[0].t == ONSET, outs
     assert all(f.plant == "tank" and f.names == ("u", "y") for f in feats)
     idx = [f.index for f in feats]
-    assert idx == list(range(len(idx)))  # from the first sample on, none lost on the way
+    # none lost on the way. The first few may be: this node has matched the preprocessor's
+    # publisher, but DDS discovery is not symmetric, so the preprocessor's writer may match this
+    # reader a moment later (volatile features are not replayed to a late reader). They must
+    # still start early enough to see the fault-free level before the onset.
+    assert idx == list(range(idx[0], idx[0] + len(idx))), idx[:20]
+    assert feats[0].t_end < 3.0, feats[0].t_end
     # the offset is in the measured level after the onset: the tank model's residual shows it
     from tank_wing import TankLevelModel
 

@@ -17,13 +17,18 @@ HELP = "identify the diesel reference models (LOLIMOT, look-up tables) from a ba
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--plant", default="diesel", choices=["diesel"],
                         help="plant configuration (only the diesel plant has these models)")
-    parser.add_argument("--data", default=None,
-                        help="identification data: scenario YAML, bag directory or CSV "
-                             "(default: the wing's identification scenario)")
+    parser.add_argument("--data", default=None, action="append",
+                        help="identification data: scenario YAML, bag directory or CSV; "
+                             "repeat for several streams (default: the bank's identification "
+                             "cycle and ECU-run part-load passes)")
     parser.add_argument("--mapping", default=None, help="mapping YAML for a CSV")
-    parser.add_argument("--fault-free", default=None,
+    parser.add_argument("--fault-free", default=None, action="append",
                         help="fault-free transient data for the thresholds (scenario, bag or "
-                             "CSV; 'none' to skip; default: the wing's driving scenario)")
+                             "CSV; repeat for several; 'none' to skip; default: the bank's two "
+                             "fault-free drives)")
+    parser.add_argument("--regimes", action="store_true",
+                        help="also identify maps of the EGR-open regimes the data hold "
+                             "(experimental: see the README's coverage section)")
     parser.add_argument("--out", default="build/models/diesel", help="output model directory")
     parser.add_argument("--figures", default=None, help="directory for PNG figures")
     parser.add_argument("--seed", type=int, default=0, help="simulation/split seed")
@@ -48,7 +53,11 @@ def _floats(text: str | None) -> tuple[float, ...]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fdi_ros.plants.diesel.identify import DEFAULT_DRIVE, DEFAULT_IDENT, build_models
+    from fdi_ros.plants.diesel.identify import (
+        REFERENCE_SOURCES,
+        THRESHOLD_SOURCES,
+        build_models,
+    )
     from fdi_ros.plants.diesel.reference import IdentificationConfig
 
     kw = {}
@@ -56,12 +65,13 @@ def run(args: argparse.Namespace) -> int:
         kw["max_models"] = args.max_models
     cfg = IdentificationConfig(seed=args.seed, lut_n=_floats(args.lut_n),
                                lut_rho2=_floats(args.lut_rho2), **kw)
-    data = DEFAULT_IDENT if args.data is None else args.data
-    fault_free = DEFAULT_DRIVE if args.fault_free is None else args.fault_free
+    data = list(REFERENCE_SOURCES) if args.data is None else args.data
+    fault_free = list(THRESHOLD_SOURCES) if args.fault_free is None else args.fault_free
     res, _, report = build_models(data, out=args.out, seed=args.seed,
                                   fault_free=fault_free, threshold_seed=args.threshold_seed,
                                   mapping=args.mapping, config=cfg,
-                                  progress=not args.no_progress, figures=args.figures)
+                                  progress=not args.no_progress, figures=args.figures,
+                                  further_regimes=args.regimes)
     if args.json:
         print(json.dumps(report, indent=1))
     else:

@@ -407,6 +407,10 @@ class CrankSegmenter:
     n_harmonics : harmonics fitted jointly (1..K) to keep higher orders out of the first.
     max_gap_deg : largest crank-angle step that is not a gap (default: relative rule, a step
         more than 1.5 x the smaller neighbouring step is a gap).
+    rate_channels, rate_lag : channels whose segment means also get a rate feature
+        ``<channel>_rate`` [unit/s]: the backward difference over ``rate_lag`` consecutive
+        valid segments (NaN until that many follow an invalid segment or a reset), e.g. to
+        compensate a slow sensor's lag (``x + tau dx/dt``).
 
     ``push(block)`` returns the feature vectors of the segments completed by the block.
     A block whose crank angles are not strictly increasing, or that starts at or before the
@@ -414,7 +418,8 @@ class CrankSegmenter:
     """
 
     def __init__(self, *, segment_deg: float, V_D: float, R: float, n_harmonics: int = 3,
-                 max_gap_deg: float | None = None) -> None:
+                 max_gap_deg: float | None = None, rate_channels: Sequence[str] = (),
+                 rate_lag: int = 8) -> None:
         if not (np.isfinite(segment_deg) and segment_deg > 0):
             raise ValueError("segment_deg must be > 0")
         if not (V_D > 0 and R > 0):
@@ -426,6 +431,10 @@ class CrankSegmenter:
         self.R = float(R)
         self.K = int(n_harmonics)
         self.max_gap = max_gap_deg
+        self.rate_channels = tuple(rate_channels)
+        if int(rate_lag) < 1:
+            raise ValueError("rate_lag must be >= 1")
+        self.rate_lag = int(rate_lag)
         self.reset()
 
     def reset(self) -> None:
@@ -437,6 +446,8 @@ class CrankSegmenter:
         self._prev: float | None = None
         self._next_seg: int | None = None
         self._plant = ""
+        # the last rate_lag segments (index, end time, valid, means of the rate channels)
+        self._rate_hist: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def push_table(self, block: SampleBlock) -> SegmentTable:
         """Like :meth:`push` but returns a :class:`SegmentTable` (no per-segment objects)."""
@@ -475,13 +486,58 @@ class CrankSegmenter:
             return _empty_table(self._plant)
         names, units, vals = _features_from(h, self._channels, plant=self._plant, D=self.D,
                                             V_D=self.V_D, R=self.R)
+        if self.rate_channels:
+            names, units, vals = self._with_rates(h, names, units, vals)
         return SegmentTable(plant=self._plant, index=h.index, t_start=h.t_start, t_end=h.t_end,
                             alpha_start=h.alpha_start, valid=h.valid, status=h.status,
                             names=names, units=units, values=vals)
 
+    def _with_rates(self, h: CrankHarmonics, names: tuple[str, ...], units: tuple[str, ...],
+                    vals: np.ndarray) -> tuple[tuple[str, ...], tuple[str, ...], np.ndarray]:
+        """Append the rate features of this table's segments (history carried over)."""
+        missing = [c for c in self.rate_channels if c not in names]
+        if missing:
+            raise ValueError(f"rate channels {missing} are not features of these blocks")
+        cols = [names.index(c) for c in self.rate_channels]
+        new = (np.asarray(h.index), np.asarray(h.t_end, dtype=float),
+               np.asarray(h.valid, dtype=bool), vals[:, cols])
+        old = self._rate_hist
+        idx, t, ok, x = new if old is None else tuple(
+            np.concatenate([a, b]) for a, b in zip(old, new))
+        rates = segment_rates(idx, t, ok, x, self.rate_lag)[idx.size - new[0].size:]
+        keep = max(idx.size - self.rate_lag, 0)
+        self._rate_hist = (idx[keep:], t[keep:], ok[keep:], x[keep:])
+        rate_units = tuple(f"{units[j]}/s" for j in cols)
+        return (names + tuple(f"{c}_rate" for c in self.rate_channels), units + rate_units,
+                np.column_stack([vals, rates]))
+
     def push(self, block: SampleBlock) -> list[FeatureVector]:
         """Feature vectors of the segments completed by this block (may be empty)."""
         return self.push_table(block).to_features()
+
+
+def segment_rates(index: np.ndarray, t: np.ndarray, valid: np.ndarray, x: np.ndarray,
+                  lag: int) -> np.ndarray:
+    """Backward differences ``(x[k] - x[k-lag]) / (t[k] - t[k-lag])`` of consecutive segments
+    (rows (N,) or (N, m)); NaN where the ``lag + 1`` segments up to k are not consecutive
+    indices, all valid and finite."""
+    X = np.asarray(x, dtype=float).reshape(len(index), -1)
+    n = X.shape[0]
+    out = np.full(X.shape, np.nan)
+    if n <= lag:
+        return out.reshape(np.shape(x))
+    k = np.arange(n)
+    bad = ~np.asarray(valid, dtype=bool) | ~np.all(np.isfinite(X), axis=1)
+    brk = np.concatenate([[True], np.diff(np.asarray(index)) != 1])
+    last_bad = np.maximum.accumulate(np.where(bad, k, -1))
+    run_start = np.maximum.accumulate(np.where(brk, k, 0))
+    j = k - lag
+    ok = (j >= 0) & (last_bad < np.maximum(j, 0)) & (run_start <= j)
+    ok &= np.asarray(t)[k] > np.asarray(t)[np.maximum(j, 0)]
+    rows = np.flatnonzero(ok)
+    dt = np.asarray(t, dtype=float)[rows] - np.asarray(t, dtype=float)[rows - lag]
+    out[rows] = (X[rows] - X[rows - lag]) / dt[:, None]
+    return out.reshape(np.shape(x))
 
 
 def _empty_table(plant: str) -> SegmentTable:

@@ -147,6 +147,9 @@ class Lolimot:
     patience : growth stops when the criterion has not improved for this many splits.
     coverage_bins : bins per input of the coverage grid used by :meth:`in_region`.
     coverage_min_count : training samples a coverage bin needs to count as identified.
+    coverage_inputs : the coverage grid spans the first this many inputs (0: all); with many
+        inputs a full grid is too sparse (or too large) to tell, while the leading ones (e.g.
+        an engine's operating point) still bound where the model was identified.
     compress_bins : 0 fits on the samples themselves; ``B > 0`` first pools the samples into
         a ``B**p`` grid over the scaled input box (bin means of x and y, weighted by counts).
         Quasi-stationary identification data repeat the same operating points many times, so
@@ -160,7 +163,8 @@ class Lolimot:
 
     def __init__(self, *, max_models: int = 20, k_sigma: float = 0.35, ridge: float = 1e-6,
                  min_samples_per_model: int = 10, patience: int = 4, coverage_bins: int = 16,
-                 coverage_min_count: int = 1, compress_bins: int = 0) -> None:
+                 coverage_min_count: int = 1, compress_bins: int = 0,
+                 coverage_inputs: int = 0) -> None:
         if int(max_models) < 1:
             raise ValueError("max_models must be >= 1")
         if not 0.05 <= float(k_sigma) <= 2.0:
@@ -175,7 +179,10 @@ class Lolimot:
             raise ValueError("coverage_bins and coverage_min_count must be >= 1")
         if int(compress_bins) < 0:
             raise ValueError("compress_bins must be >= 0")
+        if int(coverage_inputs) < 0:
+            raise ValueError("coverage_inputs must be >= 0")
         self.compress_bins = int(compress_bins)
+        self.coverage_inputs = int(coverage_inputs)
         self.max_models = int(max_models)
         self.k_sigma = float(k_sigma)
         self.ridge = float(ridge)
@@ -396,7 +403,8 @@ class Lolimot:
         return float(n * np.log(sse / n) + 2.0 * k + corr)
 
     def _coverage_grid(self, Z: FloatArray) -> BoolArray:
-        p = Z.shape[1]
+        p = min(self.coverage_inputs, Z.shape[1]) if self.coverage_inputs else Z.shape[1]
+        Z = Z[:, :p]
         bins = self.coverage_bins
         if bins ** p > _MAX_GRID_CELLS:
             return np.ones((1,) * p, dtype=bool)
@@ -442,7 +450,7 @@ class Lolimot:
         bins = grid.shape[0]
         if grid.size == 1:
             return ok
-        idx = np.clip((np.nan_to_num(Z) * bins).astype(int), 0, bins - 1)
+        idx = np.clip((np.nan_to_num(Z[:, :grid.ndim]) * bins).astype(int), 0, bins - 1)
         inside: BoolArray = ok & grid[tuple(idx.T)]
         return inside
 
@@ -502,7 +510,7 @@ class Lolimot:
                 "min_samples_per_model": self.min_samples_per_model,
                 "patience": self.patience, "coverage_bins": self.coverage_bins,
                 "coverage_min_count": self.coverage_min_count,
-                "compress_bins": self.compress_bins,
+                "compress_bins": self.compress_bins, "coverage_inputs": self.coverage_inputs,
                 "input_names": list(self.input_names), "output_name": self.output_name}
         return {"x_min": st.x_min, "x_scale": st.x_scale, "lo": st.lo, "hi": st.hi,
                 "theta": st.theta, "coverage": st.coverage,

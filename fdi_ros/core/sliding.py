@@ -11,6 +11,8 @@ from __future__ import annotations
 import math
 from collections import deque
 
+import numpy as np
+
 
 class SlidingRange:
     """``max - min`` of the finite values pushed within the last ``window`` (time units of
@@ -49,3 +51,26 @@ class SlidingRange:
         if not self._hi:
             return None
         return self._hi[0][1] - self._lo[0][1]
+
+
+def window_ranges(t: np.ndarray, x: np.ndarray, window: float,
+                  start: np.ndarray | None = None) -> np.ndarray:
+    """For every sample k, ``max - min`` of the finite ``x`` within ``t[k] - window .. t[k]``
+    and not before ``start[k]`` (e.g. where the stream last restarted); NaN without a finite
+    sample there: the array counterpart of pushing the samples through a :class:`SlidingRange`
+    (``t`` non-decreasing)."""
+    t = np.asarray(t, dtype=float)
+    x = np.asarray(x, dtype=float)
+    k = np.arange(t.size)
+    lo = np.searchsorted(t, t - window, side="left")
+    if start is not None:
+        lo = np.maximum(np.asarray(start), lo)
+    lo = np.minimum(lo, k)
+    if t.size == 0:
+        return np.zeros(0)
+    idx = np.empty(2 * t.size, dtype=np.intp)
+    idx[0::2], idx[1::2] = lo, k + 1
+    pad = np.append(np.where(np.isfinite(x), x, np.nan), np.nan)
+    with np.errstate(invalid="ignore"):
+        out: np.ndarray = np.fmax.reduceat(pad, idx)[0::2] - np.fmin.reduceat(pad, idx)[0::2]
+    return out

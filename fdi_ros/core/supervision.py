@@ -125,17 +125,17 @@ class StepAligner:
         return True
 
     def ready(self, expected: Mapping[str, int] | Iterable[str],
-              through: int | None = None) -> list[Step]:
+              through: int | None = None, most: int | None = None) -> list[Step]:
         """Steps that can be taken now, in index order. ``expected``: the models whose
         residuals complete a step, each with the first index it is expected at (a model
         brought on line answers only the features after its activation; a plain iterable:
         every step); ``through``: take every step up to this index now, complete or not (the
         end of the data: no later features will come to push the incomplete ones out by
-        ``lag_s``)."""
+        ``lag_s``); ``most``: at most this many steps."""
         start = dict(expected) if isinstance(expected, Mapping) else dict.fromkeys(expected, -1)
-        out = []
+        out: list[Step] = []
         last = -1 if through is None else through
-        while self.next_index is not None:
+        while self.next_index is not None and (most is None or len(out) < most):
             k = self.next_index
             if k not in self._feature_t:
                 if any(i > k for i in self._feature_t) or k <= last:
@@ -343,6 +343,9 @@ class SupervisorCore:
         self._stale: dict[str, str] = {}
         self.away: set[str] = set()  # models the steps do not wait for (see _steps)
         self._live_from: dict[str, int] = {}  # live model -> first feature index it answers
+        # model brought on line by a bank switch -> the step after the switch, from which it
+        # answers (core.modelfeed) and is waited for, confirmed active or still activating
+        self._switched_in: dict[str, int] = {}
         # end of the data: (plant time, last feature index) from the preprocessor, the wall
         # time it came, and whether the end of the diagnosis was said (see end_of_features)
         self.end: tuple[float, int] | None = None
@@ -433,7 +436,8 @@ class SupervisorCore:
         if not self.aligner.add_residual(rv.model_id, rv.index, rv):
             return out
         self._keep(rv.t, "residuals", rv)
-        if not self.driver.live(rv.model_id) or rv.model_id not in self.diag.models_online:
+        if not (self.driver.live(rv.model_id) or rv.model_id in self._switched_in) \
+                or rv.model_id not in self.diag.models_online:
             return out  # not expected by any step now: it completes none
         if rv.model_id == self.diag.reference_id and rv.index not in self._symptoms:
             s = self.diag.symptoms_of(rv)  # at once: the symptom need not wait for the bank
@@ -442,10 +446,25 @@ class SupervisorCore:
         return out + self._steps()
 
     def _track_live(self) -> None:
-        """A model confirmed active is expected from the features after its activation: a
-        model brought on line (a bank switch, a respawn, an external change undone) computes
-        only what it receives once active, so the steps before must not wait for it."""
-        live = {m for m in self.diag.models_online if self.driver.live(m)}
+        """The models the steps wait for, from which feature index. A model the bank switch
+        of step k brought on line answers from k + 1, as offline, however late its
+        activation (its node keeps the features meanwhile, :mod:`fdi_ros.core.modelfeed`):
+        it is waited for from k + 1 while it is wanted, healthy and activating or active.
+        Any other model confirmed active (a respawn, an external change undone) computes only
+        what it receives once active: it is expected from the features after its
+        confirmation, so the steps before do not wait for it."""
+        online = set(self.diag.models_online)
+        live = {m for m in online if self.driver.live(m)}
+        for m, k in list(self._switched_in.items()):
+            v = self.driver.nodes[m]
+            if m not in online or v.failed or v.external:
+                del self._switched_in[m]  # out of the bank again, or unhealthy: as any model
+            elif m not in live:
+                self._live_from[m] = k
+                live.add(m)
+            else:
+                self._live_from.setdefault(m, k)
+                del self._switched_in[m]  # confirmed active: a live model from k on
         for m in set(self._live_from) - live:
             del self._live_from[m]
         for m in live - set(self._live_from):
@@ -460,8 +479,12 @@ class SupervisorCore:
         from dataclasses import replace
 
         out: list[object] = []
-        expected = self._expected()
-        for st in self.aligner.ready(expected, through=self._flush_through):
+        while True:  # one step at a time: a bank switch changes whom the next ones wait for
+            expected = self._expected()
+            ready = self.aligner.ready(expected, through=self._flush_through, most=1)
+            if not ready:
+                break
+            st = ready[0]
             sym = self._symptoms.pop(st.index, None)
             # A step still incomplete lag_s of plant time after its features is skipped (not
             # valid), and the models it lacked are *away*: later steps no longer wait for
@@ -499,6 +522,9 @@ class SupervisorCore:
             self.last = d
             if step.switched:
                 self.driver.set_desired(self.diag.models_online)
+                for m in step.removed:
+                    self._switched_in.pop(m, None)
+                self._switched_in.update(dict.fromkeys(step.added, st.index + 1))
                 out.append(Note("info", "", f"bank switch at t = {st.t:.3f} s: off line "
                                 f"{list(step.removed)}, on line {list(step.added)}"))
             out += self._remember(d, st, step.symptoms)

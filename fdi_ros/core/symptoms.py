@@ -23,7 +23,25 @@ from fdi_ros.core.fst import signature_string
 from fdi_ros.core.types import ResidualVector
 
 __all__ = ["SymptomConfig", "SymptomGenerator", "SymptomState", "calibrate_thresholds",
-           "load_thresholds", "moving_average", "symptom_name"]
+           "load_thresholds", "moving_average", "rate_status", "symptom_name"]
+
+
+# What a residual model's quasi-stationarity gate makes of a transient segment.
+TRANSIENT_RULES = ("not_valid", "regime")
+TRANSIENT_SUFFIX = "/transient"
+# status word of a segment whose inputs change beyond the invalid_rates limits
+TOO_FAST = "changing too fast"
+
+
+def rate_status(values: Mapping[str, float], limits: Mapping[str, float],
+                kind: str = "transient") -> str:
+    """The gate's status for features beyond their ``max_rates`` limits ("" if none; a
+    non-finite value counts as within)."""
+    big = {k: v for k, v in values.items() if np.isfinite(v) and abs(v) > limits[k]}
+    if not big:
+        return ""
+    what = ", ".join(f"|{k}| = {abs(v):.1f} > {limits[k]:g}" for k, v in big.items())
+    return f"not valid here: {kind} ({what})"
 
 
 def symptom_name(residual: str) -> str:
@@ -68,6 +86,22 @@ class SymptomConfig:
         so that a fault's own transient does not switch its detection off).
     rate_lag : dp2/dt of the storage correction is a backward difference over this many
         segments.
+    max_rates : further gate limits: a segment is transient while the magnitude of one of
+        these features (e.g. a temperature's rate of change) exceeds its limit.
+    actuator_move : the change of a commanded actuator that makes the following seconds
+        transient (None: the residual model's own default).
+    invalid_rates : like ``max_rates``, but beyond these limits a segment is "not valid
+        here" whatever ``transients`` says (too fast for any threshold).
+    transients : what the gate makes of a transient segment: "not_valid" (no diagnosis), or
+        "regime" (a regime of its own, ``<regime>/transient``, judged by the thresholds of the
+        fault-free transients: diagnosed, less sensitively).
+    regimes : operating regimes of their own (name -> ``{"centre", "threshold", "scale"}``,
+        tuples as above): a model that covers several regimes (e.g. an engine's EGR valve
+        closed or open) with models of different accuracy says in each residual vector which
+        regime produced it, and the residuals are judged against that regime's statistics.
+        The top-level ``centre``, ``threshold`` and ``scale`` are those of ``base_regime``
+        (and of vectors that name no regime). A vector of a regime the file does not hold is
+        "not valid here".
     """
 
     centre: tuple[float, ...]
@@ -83,11 +117,38 @@ class SymptomConfig:
     max_speed_change: float = float("inf")
     max_fuel_change: float = float("inf")
     rate_lag: int = 2
+    regimes: Mapping[str, Mapping[str, tuple[float, ...]]] = field(default_factory=dict)
+    base_regime: str = ""
+    transients: str = "not_valid"
+    max_rates: Mapping[str, float] = field(default_factory=dict)
+    actuator_move: float | None = None
+    invalid_rates: Mapping[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         m = len(self.names)
         if m == 0:
             raise ValueError("a symptom configuration needs the names of its residuals")
+        regimes = {}
+        for rname, st in dict(self.regimes).items():
+            if not isinstance(st, Mapping) or set(st) != {"centre", "threshold", "scale"}:
+                raise ValueError(f"regime {rname!r}: needs exactly centre, threshold, scale")
+            vals = {k: tuple(float(x) for x in st[k]) for k in ("centre", "threshold", "scale")}
+            if any(len(v) != m or not np.all(np.isfinite(v)) for v in vals.values()):
+                raise ValueError(f"regime {rname!r}: needs {m} finite values each")
+            if min(vals["threshold"]) <= 0 or min(vals["scale"]) <= 0:
+                raise ValueError(f"regime {rname!r}: thresholds and scales must be positive")
+            regimes[str(rname)] = vals
+        object.__setattr__(self, "regimes", regimes)
+        object.__setattr__(self, "base_regime", str(self.base_regime))
+        if self.transients not in TRANSIENT_RULES:
+            raise ValueError(f"transients must be one of {TRANSIENT_RULES}")
+        for name in ("max_rates", "invalid_rates"):
+            rates = {str(k): float(v) for k, v in dict(getattr(self, name)).items()}
+            if any(not v > 0 for v in rates.values()):
+                raise ValueError(f"{name} limits must be > 0")
+            object.__setattr__(self, name, rates)
+        if self.actuator_move is not None and not self.actuator_move > 0:
+            raise ValueError("actuator_move must be > 0")
         if not (self.max_speed_change > 0 and self.max_fuel_change > 0 and self.settle_s >= 0
                 and self.rate_lag >= 1 and np.isfinite(self.storage_coeff)):
             raise ValueError("gate limits must be > 0, settle_s >= 0, rate_lag >= 1, "
@@ -106,15 +167,43 @@ class SymptomConfig:
         object.__setattr__(self, "names", tuple(self.names))
 
     def to_dict(self) -> dict[str, Any]:
-        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
+        d = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
+        d["regimes"] = {r: {k: list(v) for k, v in st.items()} for r, st in self.regimes.items()}
+        d["max_rates"] = dict(self.max_rates)
+        d["invalid_rates"] = dict(self.invalid_rates)
+        return d
+
+    def knows(self, regime: str) -> bool:
+        """Whether the file holds statistics for ``regime`` ("" and the base regime: yes)."""
+        return regime in ("", self.base_regime) or regime in self.regimes
+
+    def statistics(self, regime: str = "") -> tuple[np.ndarray, np.ndarray]:
+        """(centre, threshold) of a regime ("" or the base regime: the top-level ones)."""
+        if regime in ("", self.base_regime):
+            return np.asarray(self.centre), np.asarray(self.threshold)
+        st = self.regimes.get(regime)
+        if st is None:
+            raise KeyError(f"no thresholds for regime {regime!r}")
+        return np.asarray(st["centre"]), np.asarray(st["threshold"])
+
+    def normalise(self, values: np.ndarray, regime: str = "") -> np.ndarray:
+        """Residuals centred and divided by their regime's thresholds: fault-free they stay
+        within +-1 once filtered, whatever the regime."""
+        c, thr = self.statistics(regime)
+        out: np.ndarray = (np.asarray(values, dtype=float) - c) / thr
+        return out
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> SymptomConfig:
         unknown = set(d) - set(cls.__dataclass_fields__)
         if unknown:
             raise ValueError(f"unknown symptom settings: {sorted(unknown)}")
-        kw: dict[str, Any] = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()}
-        return cls(**kw)
+        kw: dict[str, Any] = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()
+                              if k != "regimes"}
+        regimes = d.get("regimes") or {}
+        if not isinstance(regimes, Mapping):
+            raise ValueError("regimes must map regime names to their statistics")
+        return cls(**kw, regimes=regimes)
 
 
 def load_thresholds(path: str | Path) -> SymptomConfig:
@@ -131,20 +220,10 @@ def load_thresholds(path: str | Path) -> SymptomConfig:
         raise ValueError(f"{path}: malformed thresholds: {exc}") from None
 
 
-def calibrate_thresholds(R: np.ndarray, valid: np.ndarray | None = None, *,
-                         k_sigma: float = 5.0, margin: float = 1.25, filter_len: int = 4,
-                         min_threshold: Sequence[float] | None = None,
-                         names: Sequence[str], **settings: Any) -> SymptomConfig:
-    """Thresholds from fault-free residuals (N, m), not tuned on any fault.
-
-    ``threshold = max(k_sigma * s, margin * max|f - c|, min_threshold)`` where ``f`` is the
-    filtered residual, ``c`` its median and ``s`` its robust standard deviation (1.4826 MAD):
-    a Gaussian-tail bound that also covers every fault-free excursion seen, with margin.
-    """
-    R = np.asarray(R, dtype=float)
-    if valid is not None:
-        R = R[np.asarray(valid, dtype=bool)]
-    R = R[np.all(np.isfinite(R), axis=1)]
+def _statistics(R: np.ndarray, *, k_sigma: float, margin: float, filter_len: int,
+                min_threshold: Sequence[float] | None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(centre, threshold, scale) of fault-free residual rows (see calibrate_thresholds)."""
     if R.shape[0] < 20:
         raise ValueError(f"need >= 20 valid fault-free residual rows, got {R.shape[0]}")
     c = np.median(R, axis=0)
@@ -154,8 +233,51 @@ def calibrate_thresholds(R: np.ndarray, valid: np.ndarray | None = None, *,
     thr = np.maximum(k_sigma * s, margin * np.abs(F).max(axis=0))
     if min_threshold is not None:
         thr = np.maximum(thr, np.asarray(min_threshold, dtype=float))
+    return c, thr, s
+
+
+def calibrate_thresholds(R: np.ndarray, valid: np.ndarray | None = None, *,
+                         k_sigma: float = 5.0, margin: float = 1.25, filter_len: int = 4,
+                         min_threshold: Sequence[float] | None = None,
+                         names: Sequence[str], regimes: Sequence[str] | None = None,
+                         base_regime: str = "", min_rows: int = 20,
+                         margins: Mapping[str, float] | None = None,
+                         **settings: Any) -> SymptomConfig:
+    """Thresholds from fault-free residuals (N, m), not tuned on any fault.
+
+    ``threshold = max(k_sigma * s, margin * max|f - c|, min_threshold)`` where ``f`` is the
+    filtered residual, ``c`` its median and ``s`` its robust standard deviation (1.4826 MAD):
+    a Gaussian-tail bound that also covers every fault-free excursion seen, with margin.
+
+    ``regimes``: the operating regime of each row (see :class:`SymptomConfig`); each regime
+    gets statistics of its own rows (``base_regime``'s, or "" rows', are the top-level ones).
+    A regime with fewer than ``min_rows`` valid rows gets none: its residuals stay "not valid
+    here" rather than be judged by another regime's thresholds. ``margins``: a regime's own
+    margin on its largest fault-free excursion (e.g. a regime whose models rest on fewer data
+    and generalise less).
+    """
+    R = np.asarray(R, dtype=float)
+    keep = np.all(np.isfinite(R), axis=1)
+    if valid is not None:
+        keep &= np.asarray(valid, dtype=bool)
+    labels = np.array([""] * R.shape[0] if regimes is None else
+                      ["" if r == base_regime else str(r) for r in regimes], dtype=object)
+    margins = dict(margins or {})
+
+    def stats(rows: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return _statistics(rows, k_sigma=k_sigma, margin=margins.get(name, margin),
+                           filter_len=filter_len, min_threshold=min_threshold)
+
+    c, thr, s = stats(R[keep & (labels == "")], base_regime)
+    extra = {}
+    for name in sorted(set(labels[keep]) - {""}):
+        rows = R[keep & (labels == name)]
+        if rows.shape[0] >= max(min_rows, 20):
+            rc, rt, rs = stats(rows, name)
+            extra[name] = {"centre": tuple(rc), "threshold": tuple(rt), "scale": tuple(rs)}
     return SymptomConfig(centre=tuple(c), threshold=tuple(thr), scale=tuple(s),
-                         filter_len=filter_len, names=tuple(names), **settings)
+                         filter_len=filter_len, names=tuple(names), regimes=extra,
+                         base_regime=base_regime, **settings)
 
 
 @dataclass(frozen=True)
@@ -172,6 +294,7 @@ class SymptomState:
     threshold_low: tuple[float, ...]
     threshold_high: tuple[float, ...]
     threshold_intense: tuple[float, ...]
+    regime: str = ""   # the operating regime of the residuals (see SymptomConfig.regimes)
 
     @property
     def signature(self) -> str:
@@ -184,6 +307,10 @@ class SymptomState:
         """Levels in the order ``columns`` (e.g. a fault-symptom table's); absent ones 0."""
         d = self.by_name()
         return tuple(d.get(s, 0) for s in columns)
+
+
+# the reported thresholds (low, high, intense) of one regime
+_Bounds = tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]
 
 
 @dataclass
@@ -225,23 +352,35 @@ class SymptomGenerator:
         except ValueError:
             raise ValueError(f"residual vector {rv.names} lacks {self.config.names}") from None
 
+    def _regime(self, rv: ResidualVector) -> tuple[np.ndarray, np.ndarray, _Bounds, str]:
+        """(centre, threshold, reported thresholds, why not valid) of the vector's regime."""
+        cfg = self.config
+        if not cfg.knows(rv.regime):
+            c, thr = cfg.statistics()
+            why = f"not valid here: no thresholds for regime {rv.regime!r}"
+        else:
+            (c, thr), why = cfg.statistics(rv.regime), ""
+        return c, thr, (tuple(c - thr), tuple(c + thr), tuple(c + cfg.intense_factor * thr)), why
+
     def update(self, rv: ResidualVector) -> SymptomState:
         cfg = self.config
-        thr = np.asarray(cfg.threshold)
-        c = np.asarray(cfg.centre)
         m = len(cfg.names)
-        thr_t = (tuple(c - thr), tuple(c + thr), tuple(c + cfg.intense_factor * thr))
+        c, thr, thr_t, why = self._regime(rv)
         v = self._values(rv)
-        if not rv.valid or not np.all(np.isfinite(v)):
+        if why or not rv.valid or not np.all(np.isfinite(v)):
             # Not valid here: no symptom, and the filter restarts when data is valid again.
             self.reset()
-            return SymptomState(rv.index, rv.t, False, rv.status or "residuals not valid",
+            return SymptomState(rv.index, rv.t, False,
+                                (rv.status if not rv.valid else why) or why
+                                or "residuals not valid",
                                 self.symptom_names, (0,) * m, tuple(np.full(m, np.nan)),
-                                *thr_t)
-        self._buf.append(v - c)
+                                *thr_t, regime=rv.regime)
+        # the filter runs on residuals in units of their regime's thresholds, so that a
+        # change of regime neither jumps nor mixes units
+        self._buf.append((v - c) / thr)
         f = np.mean(self._buf, axis=0)
-        raw = np.where(f < -thr, -1, np.where(f > cfg.intense_factor * thr, 2,
-                                              np.where(f > thr, 1, 0)))
+        raw = np.where(f < -1.0, -1, np.where(f > cfg.intense_factor, 2,
+                                              np.where(f > 1.0, 1, 0)))
         same = raw == self._cand
         self._count = np.where(same, self._count + 1, 1)
         self._cand = raw
@@ -251,7 +390,8 @@ class SymptomGenerator:
         grow = (self._level != 0) & (raw != 0) & (np.sign(raw) == np.sign(self._level))
         self._level = np.where(switch | grow, raw, self._level)
         return SymptomState(rv.index, rv.t, True, "", self.symptom_names,
-                            tuple(int(x) for x in self._level), tuple(f + c), *thr_t)
+                            tuple(int(x) for x in self._level), tuple(f * thr + c), *thr_t,
+                            regime=rv.regime)
 
     def run(self, rvs: Sequence[ResidualVector]) -> list[SymptomState]:
         """:meth:`update` over a stream (from a reset), the moving average with array
@@ -261,11 +401,13 @@ class SymptomGenerator:
         self.reset()
         if not n_rows:
             return []
-        c, thr = np.asarray(cfg.centre, dtype=float), np.asarray(cfg.threshold, dtype=float)
-        thr_t = (tuple(c - thr), tuple(c + thr), tuple(c + cfg.intense_factor * thr))
+        per = {r: self._regime(rv) for r, rv in {rv.regime: rv for rv in rvs}.items()}
+        C = np.array([per[rv.regime][0] for rv in rvs], dtype=float).reshape(n_rows, m)
+        T = np.array([per[rv.regime][1] for rv in rvs], dtype=float).reshape(n_rows, m)
         V = np.array([self._values(rv) for rv in rvs], dtype=float).reshape(n_rows, m)
-        ok = np.array([bool(rv.valid) for rv in rvs]) & np.all(np.isfinite(V), axis=1)
-        X = np.where(ok[:, None], V - c, 0.0)
+        ok = np.array([bool(rv.valid) and not per[rv.regime][3] for rv in rvs]) \
+            & np.all(np.isfinite(V), axis=1)
+        X = np.where(ok[:, None], (V - C) / T, 0.0)
         k = np.arange(n_rows)
         count = np.minimum(k - np.maximum.accumulate(np.where(ok, -1, k)), L)
         # the filter's sum, oldest sample first (as np.mean adds the buffer's rows)
@@ -274,19 +416,21 @@ class SymptomGenerator:
             take = ok & (back < count)
             acc = acc + np.where(take[:, None], X[np.maximum(k - back, 0)], 0.0)
         filt = acc / np.maximum(count, 1)[:, None]
-        raw = np.where(filt < -thr, -1, np.where(filt > cfg.intense_factor * thr, 2,
-                                              np.where(filt > thr, 1, 0))).tolist()
-        FC = filt + c
+        raw = np.where(filt < -1.0, -1, np.where(filt > cfg.intense_factor, 2,
+                                                 np.where(filt > 1.0, 1, 0))).tolist()
+        FC = filt * T + C
         names = self.symptom_names
         nan_t = tuple(np.full(m, np.nan))
         on, off = int(cfg.debounce_on), int(cfg.debounce_off)
         level, cand, cnt = [0] * m, [0] * m, [0] * m
         out = []
         for j, rv in enumerate(rvs):
+            thr_t = per[rv.regime][2]
             if not ok[j]:
                 level, cand, cnt = [0] * m, [0] * m, [0] * m
-                out.append(SymptomState(rv.index, rv.t, False, rv.status or "residuals not valid",
-                                        names, (0,) * m, nan_t, *thr_t))
+                why = rv.status if not rv.valid else per[rv.regime][3]
+                out.append(SymptomState(rv.index, rv.t, False, why or "residuals not valid",
+                                        names, (0,) * m, nan_t, *thr_t, regime=rv.regime))
                 continue
             r = raw[j]
             for i in range(m):
@@ -297,10 +441,10 @@ class SymptomGenerator:
                         (li != 0 and ri != 0 and (ri > 0) == (li > 0)):
                     level[i] = ri
             out.append(SymptomState(rv.index, rv.t, True, "", names, tuple(level),
-                                    tuple(FC[j]), *thr_t))
+                                    tuple(FC[j]), *thr_t, regime=rv.regime))
         # leave the generator as update() would have
         self._level, self._cand = np.array(level, dtype=int), np.array(cand, dtype=int)
         self._count = np.array(cnt, dtype=int)
         for j in range(n_rows - int(count[-1]) if ok[-1] else n_rows, n_rows):
-            self._buf.append(V[j] - c)
+            self._buf.append(X[j])
         return out

@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 Array = NDArray[np.float64]
 
@@ -196,6 +195,8 @@ def fit_ts(x: np.ndarray, y: np.ndarray, *, n_rules: int = 3, premise: int = 0,
     def jac(theta: Array) -> Array:
         c, s, a = _split(theta, n_rules, x.shape[1])
         return _jacobian(z, premise, c, s, a)
+
+    from scipy.optimize import least_squares  # training only: a model node never loads it
 
     t0 = time.perf_counter()
     sol = least_squares(fun, model0.theta(), jac=jac, method="lm", max_nfev=max_nfev,

@@ -93,6 +93,9 @@ class ResidualVector:
     units: tuple[str, ...]
     values: np.ndarray
     norm: float
+    #: the operating regime whose models (and thresholds) gave these residuals; "" when the
+    #: model knows one regime only (see :class:`fdi_ros.core.symptoms.SymptomConfig`)
+    regime: str = ""
 
 
 @dataclass(frozen=True)

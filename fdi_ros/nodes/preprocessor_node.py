@@ -16,7 +16,7 @@ from typing import Any
 from rclpy.node import Node
 
 from fdi_ros import msgs
-from fdi_ros.nodes.common import DATA_QOS, Param, declare_params, run_node
+from fdi_ros.nodes.common import DATA_IN_QOS, DATA_QOS, Param, declare_params, run_node
 from fdi_ros.nodes.endofdata import EndOfFeatures
 
 PARAMS = (Param("plant", "", "plant id of the plant registry: which "
@@ -34,7 +34,7 @@ class PreprocessorNode(Node):
         self.pre = make_preprocessor(self.get_parameter("plant").value)
         self._fac = msgs.MessageFactory("rclpy")
         self._pub = self.create_publisher(Features, "/fdi/features", DATA_QOS)
-        self.create_subscription(SensorBlock, "/fdi/sensor_block", self._on_block, DATA_QOS)
+        self.create_subscription(SensorBlock, "/fdi/sensor_block", self._on_block, DATA_IN_QOS)
         self._last_index: int | None = None
         self._end = EndOfFeatures(self)
         self._last_features = -1

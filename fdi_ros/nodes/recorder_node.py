@@ -20,7 +20,7 @@ from rclpy.node import Node
 from fdi_ros import msgs
 from fdi_ros.bag import BagWriter
 from fdi_ros.nodes.common import (
-    DATA_QOS,
+    DATA_IN_QOS,
     LATCHED_QOS,
     Param,
     declare_params,
@@ -73,7 +73,7 @@ class RecorderNode(Node):
     def _subscribe(self, topic: str, msgtype: str) -> None:
         if topic in self._subs:
             return
-        qos = LATCHED_QOS if topic.startswith("/fdi/fault_") else DATA_QOS
+        qos = LATCHED_QOS if topic.startswith("/fdi/fault_") else DATA_IN_QOS
         cls = _msg_class(msgtype)
         self._subs[topic] = self.create_subscription(
             cls, topic, partial(self._on_msg, topic, msgtype), qos, raw=True)

@@ -3,13 +3,12 @@
 Lifecycle (standard services ``/<node>/change_state``, ``/<node>/get_state``):
 
 * ``configure``: load the model named by the parameters (``model_id``, ``model``: a spec or
-  file understood by :func:`fdi_ros.plants.load_residual_model`); create the
-  residual publisher and the features subscription. A model that fails to load -> FAILURE,
-  with the reason logged (rclpy would otherwise swallow it).
-* ``activate``: residuals are published from now on; the model's dynamic state is reset, so a
-  model taken on line after an isolation starts from the measured state.
-* ``deactivate``: nothing is published (features are ignored).
-* ``cleanup``: model, publisher and subscription released.
+  file understood by :func:`fdi_ros.plants.load_residual_model`); residual publisher and
+  features subscription. A model that fails to load -> FAILURE, the reason logged.
+* ``activate``: the model's state is reset (it starts from the measured state); residuals
+  from the step after the bank switch that brought it on line (the features since then were
+  kept, /fdi/diagnosis followed while not active: :class:`fdi_ros.core.modelfeed.ModelFeed`).
+* ``deactivate``: nothing is published; ``cleanup``: model, publisher, subscriptions gone.
 
 Parameters: ``model_id`` (string, required), ``model`` (spec string / path, required),
 ``features_topic`` (/fdi/features), ``residuals_topic`` (/fdi/residuals).
@@ -23,7 +22,8 @@ from typing import Any
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 
 from fdi_ros import msgs
-from fdi_ros.nodes.common import DATA_QOS, Param, declare_params, run_node
+from fdi_ros.core.modelfeed import ModelFeed
+from fdi_ros.nodes.common import DATA_IN_QOS, DATA_QOS, Param, declare_params, run_node
 
 # Read on configure: a change applies at the next configure (hence read-only while running).
 PARAMS = (
@@ -40,9 +40,9 @@ class ResidualNode(LifecycleNode):
         declare_params(self, PARAMS)
         self._model: Any = None
         self._pub: Any = None
-        self._sub: Any = None
+        self._subs: dict[str, Any] = {}
         self._fac = msgs.MessageFactory("rclpy")
-        self._active = False
+        self._feed: ModelFeed[Any] = ModelFeed(self.model_id)
         self.n_published = 0
 
     @property
@@ -67,9 +67,11 @@ class ResidualNode(LifecycleNode):
 
             self._pub = self.create_lifecycle_publisher(
                 Residuals, self.get_parameter("residuals_topic").value, DATA_QOS)
-            self._sub = self.create_subscription(
+            self._feed = ModelFeed(mid)
+            self._subs["features"] = self.create_subscription(
                 Features, self.get_parameter("features_topic").value, self._on_features,
-                DATA_QOS)
+                DATA_IN_QOS)
+            self._watch()
         except Exception:
             self.get_logger().error(f"configure failed:\n{traceback.format_exc()}")
             self._release()
@@ -85,12 +87,14 @@ class ResidualNode(LifecycleNode):
         except Exception:
             self.get_logger().error(f"activate failed:\n{traceback.format_exc()}")
             return TransitionCallbackReturn.FAILURE
-        self._active = True
         self.get_logger().info(f"model {self.model_id!r} on line")
-        return super().on_activate(state)
+        done = super().on_activate(state)
+        self._answer(self._feed.activate())
+        return done
 
     def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._active = False
+        self._feed.deactivate()
+        self._watch()
         self.get_logger().info(f"model {self.model_id!r} off line")
         return super().on_deactivate(state)
 
@@ -98,30 +102,44 @@ class ResidualNode(LifecycleNode):
         self._release()
         return TransitionCallbackReturn.SUCCESS
 
-    def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
-        self._release()
-        return TransitionCallbackReturn.SUCCESS
+    on_shutdown = on_cleanup
 
     def _release(self) -> None:
-        self._active = False
-        if self._sub is not None:
-            self.destroy_subscription(self._sub)
+        self._feed.deactivate()
+        for sub in self._subs.values():
+            self.destroy_subscription(sub)
         if self._pub is not None:
             self.destroy_lifecycle_publisher(self._pub)
-        self._sub = self._pub = self._model = None
+        self._subs, self._pub, self._model = {}, None, None
 
     # -- data -----------------------------------------------------------------------------------
     def _on_features(self, m: Any) -> None:
-        if not self._active or self._model is None:
-            return
-        fv = msgs.to_features(m)
-        try:
-            rv = self._model.residuals(fv)
-        except Exception as exc:  # a bad feature vector must not kill the model node
-            self.get_logger().warn(f"features {fv.index}: {exc}", throttle_duration_sec=5.0)
-            return
-        self._pub.publish(self._fac.residuals(rv))
-        self.n_published += 1
+        self._answer(self._feed.features(m.index, m))
+
+    def _on_diagnosis(self, m: Any) -> None:
+        self._answer(self._feed.diagnosis(m.index, m.models_online))
+
+    def _answer(self, features: list[Any]) -> None:
+        for m in features if self._model is not None else ():
+            fv = msgs.to_features(m)
+            try:
+                rv = self._model.residuals(fv)
+            except Exception as exc:  # a bad feature vector must not kill the model node
+                self.get_logger().warn(f"features {fv.index}: {exc}", throttle_duration_sec=5.0)
+                continue
+            self._pub.publish(self._fac.residuals(rv))
+            self.n_published += 1
+        self._watch()
+
+    def _watch(self) -> None:  # /fdi/diagnosis only while the feed needs it (not answering)
+        need = self._model is not None and not self._feed.answering
+        if need and "diagnosis" not in self._subs:
+            from fdi_msgs.msg import Diagnosis
+
+            self._subs["diagnosis"] = self.create_subscription(
+                Diagnosis, "/fdi/diagnosis", self._on_diagnosis, DATA_IN_QOS)
+        elif not need and "diagnosis" in self._subs:
+            self.destroy_subscription(self._subs.pop("diagnosis"))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -23,7 +23,7 @@ from typing import Any
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 
 from fdi_ros.core.pacing import HoldBack
-from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, Param
+from fdi_ros.nodes.common import DATA_IN_QOS, LATCHED_QOS, Param
 from fdi_ros.nodes.endofdata import END_OF_DATA_TOPIC, end_message
 
 # The supervisor's "the graph is ready for data" signal: std_msgs/msg/Header, transient-local
@@ -103,7 +103,7 @@ class DiagnosisHold:
 
         self._node, self.core = node, HoldBack()
         self._sub = node.create_subscription(Diagnosis, "/fdi/diagnosis", lambda m: (
-            self.core.diagnosis(float(m.t_s), time.monotonic())), DATA_QOS)
+            self.core.diagnosis(float(m.t_s), time.monotonic())), DATA_IN_QOS)
 
     def held(self, t: float, pacer: Any, anchor: float, rate_name: str) -> bool:
         self.core.ahead_s = float(self._node.get_parameter("max_ahead_s").value)

@@ -24,7 +24,7 @@ from fdi_ros.core.bankdriver import ChangeState, GetState, Note
 from fdi_ros.core.supervision import GATE_TOPICS, PARAMS, Publish, SupervisorCore
 from fdi_ros.nodes import endofdata as eod
 from fdi_ros.nodes import startup as su
-from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS, run_node
+from fdi_ros.nodes.common import DATA_IN_QOS, DATA_QOS, LATCHED_QOS, run_node
 
 
 class SupervisorNode(Node):
@@ -48,11 +48,12 @@ class SupervisorNode(Node):
                     "ready": self.create_publisher(Header, su.READY_TOPIC, LATCHED_QOS),
                     "end": self.create_publisher(Header, eod.END_OF_DIAGNOSIS_TOPIC, LATCHED_QOS)}
         self.create_subscription(Header, eod.END_OF_FEATURES_TOPIC, self._on_end, LATCHED_QOS)
-        self._subs = {t: self.create_subscription(c, t, self._safe(f, g), DATA_QOS) for t, c, f, g
-                      in (("/fdi/residuals", Residuals, msgs.to_residuals, self.core.residual),
+        self._subs = {t: self.create_subscription(c, t, self._safe(f, g), DATA_IN_QOS)
+                      for t, c, f, g in (
+                          ("/fdi/residuals", Residuals, msgs.to_residuals, self.core.residual),
                           ("/fdi/features", Features, msgs.to_features, self.core.features))}
         self.create_subscription(SensorBlock, "/fdi/sensor_block", lambda raw: self.core.block(
-            msgs.raw_header_stamp(cast(bytes, raw)), time.monotonic()), DATA_QOS, raw=True)
+            msgs.raw_header_stamp(cast(bytes, raw)), time.monotonic()), DATA_IN_QOS, raw=True)
         self.create_service(GetFaults, "/fdi/get_faults", lambda q, r: GetFaults.Response(
             faults=msgs.fault_records(self.core.memory.records.values())))
         self.create_service(ClearFaults, "/fdi/clear_faults", self._clear_faults)

@@ -25,6 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from fdi_ros.core.sliding import window_ranges
+from fdi_ros.core.symptoms import TOO_FAST, TRANSIENT_SUFFIX, rate_status
 from fdi_ros.core.types import FeatureVector, ResidualVector
 from fdi_ros.plants.diesel.ecu import (
     ACTUATOR_MOVE,
@@ -40,7 +42,7 @@ class Parity:
     parity residuals of many segments and of one, their names and units, the features they
     read and why a segment is outside the models' region."""
 
-    many: Callable[..., tuple[np.ndarray, np.ndarray]]
+    many: Callable[..., tuple[np.ndarray, np.ndarray, np.ndarray]]   # R, valid, regime
     one: Callable[..., ResidualVector]
     names: tuple[str, ...]
     units: tuple[str, ...]
@@ -50,6 +52,10 @@ class Parity:
 
 
 _new = object.__new__
+# per segment of a run: residuals (N, m), validity, status, operating regime
+_Rows = tuple[np.ndarray, np.ndarray, list[str], list[str]]
+# a model's answers for a run: validity, status, values, norm, regime per segment
+_Run = tuple[list[bool], list[str], list[np.ndarray], list[float], list[str]]
 _SETTLING = "not valid here: settling (too little history after a gap)"
 
 
@@ -79,8 +85,8 @@ class _Stream:
         self.fv_valid = np.array([bool(fv.valid) for fv in self.feats])
         self.cols: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._matrix: np.ndarray | None = None
-        self._base: dict[int, tuple[np.ndarray, np.ndarray, list[str]]] = {}
-        self.gated: dict[Any, tuple[np.ndarray, np.ndarray, list[str]]] = {}
+        self._base: dict[int, _Rows] = {}
+        self.gated: dict[Any, _Rows] = {}
         self.pos = {id(fv): k for k, fv in enumerate(self.feats)}
 
     def col(self, name: str) -> tuple[np.ndarray, np.ndarray]:
@@ -101,8 +107,8 @@ class _Stream:
             self._matrix = np.array([fv.values for fv in self.feats], dtype=float)
         return names if self._matrix is not None else None
 
-    def base(self, models: Any) -> tuple[np.ndarray, np.ndarray, list[str]]:
-        """Parity residuals (N, 5), validity and status of every segment, as
+    def base(self, models: Any) -> _Rows:
+        """Parity residuals (N, 5), validity, status and regime of every segment, as
         :func:`~fdi_ros.plants.diesel.symptoms.residual_vector` gives them one by one."""
         key = id(models)
         if key in self._base:
@@ -113,10 +119,10 @@ class _Stream:
             rvs = [P.one(models, fv) for fv in self.feats]
             R = np.array([rv.values for rv in rvs], dtype=float).reshape(self.N, len(P.names))
             self._base[key] = (R, np.array([rv.valid for rv in rvs], dtype=bool),
-                               [rv.status for rv in rvs])
+                               [rv.status for rv in rvs], [rv.regime for rv in rvs])
             return self._base[key]
         data = {k: self.col(k)[0] for k in P.features(models) if k in names}
-        R, ok = P.many(models, data)
+        R, ok, regime = P.many(models, data)
         valid = self.fv_valid & ok
         why = P.region_status(models, data, ok) if not ok.all() else None
         status = [""] * self.N
@@ -126,7 +132,7 @@ class _Stream:
                 status[k] = fv.status or "features not valid"
             else:
                 status[k] = (why[k] if why is not None else "") or "residuals not finite"
-        self._base[key] = (R, valid, status)
+        self._base[key] = (R, valid, status, [str(r) for r in regime])
         return self._base[key]
 
 
@@ -183,7 +189,7 @@ class BatchedModel:
         self.stream = stream
         self._pos = stream.pos
         self._names, self._units = stream.parity.names, stream.parity.units
-        self._run: tuple[list[bool], list[str], list[np.ndarray], list[float]] | None = None
+        self._run: _Run | None = None
         self._k0 = 0
         self._next = 0
 
@@ -202,23 +208,24 @@ class BatchedModel:
             raise ValueError(f"{self.model_id}: segment {k} out of turn (expected "
                              f"{self._next}); reset() first")
         self._next = k + 1
-        valid, status, values, norm = self._run
+        valid, status, values, norm, regime = self._run
         i = k - self._k0
         # a frozen record's fields set at once (the per-field __setattr__ of the dataclass's
         # __init__ is most of the cost of a step here)
         rv = _new(ResidualVector)
         rv.__dict__.update(model_id=self.model_id, index=fv.index, t=fv.t_end, valid=valid[i],
                            status=status[i], names=self._names, units=self._units,
-                           values=values[i], norm=norm[i])
+                           values=values[i], norm=norm[i], regime=regime[i])
         return rv
 
     # -- one run, from a reset at segment k0 to the end of the stream ----------------------
-    def _gate(self, k0: int, R: np.ndarray, valid: np.ndarray,
-              status: list[str]) -> tuple[np.ndarray, np.ndarray, list[str]]:
-        """QuasiStationarity.apply over the run (correction of r_eta, transient gate)."""
+    def _gate(self, k0: int, R: np.ndarray, valid: np.ndarray, status: list[str],
+              regime: list[str]) -> _Rows:
+        """QuasiStationarity.apply over the run (correction of r_eta, transient gate or
+        transient regime)."""
         c = self.model.config
         if c is None or not (c.storage_coeff != 0.0 or c.settle_s > 0):
-            return R, valid, status
+            return R, valid, status, regime
         st = self.stream
         t = st.t[k0:]
         n, has_n = (a[k0:] for a in st.col("n"))
@@ -254,45 +261,63 @@ class BatchedModel:
             settled = np.ones(m, dtype=bool)
         for i in np.flatnonzero(valid & ~(np.isfinite(dp) & np.isfinite(dn))):
             valid[i], status[i] = False, _SETTLING
-        for i in np.flatnonzero(valid & ~settled):
-            valid[i] = False
-            status[i] = (f"not valid here: transient inputs (speed moved {dn[i]:.0f} rpm, "
-                         f"fuel {df[i]:.1f} mg within {c.settle_s:g} s)")
-        moved = self._actuators_moved(k0, t, k, rs)
+        too_fast = {k: self.stream.col(k)[0][k0:] for k in c.invalid_rates}
+        for k, v in too_fast.items():
+            with np.errstate(invalid="ignore"):
+                rows = np.flatnonzero(valid & (np.abs(v) > c.invalid_rates[k]))
+            for i in rows:
+                valid[i] = False
+                status[i] = rate_status({a: float(x[i]) for a, x in too_fast.items()},
+                                        c.invalid_rates, TOO_FAST)
+        transient = valid & ~settled
+        moved = self._actuators_moved(k0, t, rs)
         big = np.zeros(m, dtype=bool)
         for v in moved.values():
             with np.errstate(invalid="ignore"):
-                big |= v > ACTUATOR_MOVE
-        for i in np.flatnonzero(valid & big):   # the others have no status to give
-            why = actuator_status({a: float(v[i]) for a, v in moved.items()})
-            if why:
-                valid[i], status[i] = False, why
+                big |= v > (c.actuator_move or ACTUATOR_MOVE)
+        for i in np.flatnonzero(valid & settled & big):   # the others have no status to give
+            transient[i] = bool(actuator_status({a: float(v[i]) for a, v in moved.items()},
+                                                c.actuator_move))
+        rates = {k: self.stream.col(k)[0][k0:] for k in c.max_rates}
+        fast = np.zeros(m, dtype=bool)
+        for k, v in rates.items():
+            with np.errstate(invalid="ignore"):
+                fast |= np.abs(v) > c.max_rates[k]
+        still = valid & ~transient
+        for i in np.flatnonzero(still & fast):
+            transient[i] = True
+        if c.transients == "regime":
+            for i in np.flatnonzero(transient):
+                regime[i] = regime[i] + TRANSIENT_SUFFIX
+        else:
+            for i in np.flatnonzero(transient):
+                valid[i] = False
+                status[i] = (f"not valid here: transient inputs (speed moved {dn[i]:.0f} "
+                             f"rpm, fuel {df[i]:.1f} mg within {c.settle_s:g} s)"
+                             if not settled[i] else
+                             actuator_status({a: float(v[i]) for a, v in moved.items()},
+                                             c.actuator_move)
+                             or rate_status({k: float(v[i]) for k, v in rates.items()},
+                                            c.max_rates))
         if "r_eta" in c.names and c.storage_coeff:
             j = c.names.index("r_eta")
             rows = np.flatnonzero(valid)
             R[rows, j] += c.storage_coeff * dp[rows] / (n[rows] * p2[rows])
-        return R, valid, status
+        return R, valid, status, regime
 
-    def _actuators_moved(self, k0: int, t: np.ndarray, k: np.ndarray,
+    def _actuators_moved(self, k0: int, t: np.ndarray,
                          rs: np.ndarray) -> dict[str, np.ndarray]:
         """Per actuator command, its range over the last ACTUATOR_SETTLE_S of the run (NaN:
         not in the data), as QuasiStationarity.actuators_moved."""
         out = {}
-        lo = np.minimum(np.maximum(rs, np.searchsorted(t, t - ACTUATOR_SETTLE_S,
-                                                       side="left")), k)
-        idx = np.empty(2 * t.size, dtype=np.intp)
-        idx[0::2], idx[1::2] = lo, k + 1
         for a in GATED_ACTUATORS:
             v, has = (x[k0:] for x in self.stream.col(a))
             v = np.where(has & np.isfinite(v), v, np.nan)
-            if not np.isfinite(v).any():
-                continue
-            pad = np.append(v, np.nan)
-            with np.errstate(invalid="ignore"):
-                out[a] = (np.fmax.reduceat(pad, idx)[0::2] - np.fmin.reduceat(pad, idx)[0::2])
+            if np.isfinite(v).any():
+                out[a] = window_ranges(t, v, ACTUATOR_SETTLE_S, start=rs)
         return out
 
-    def _compute(self, k0: int) -> tuple[list[bool], list[str], list[np.ndarray], list[float]]:
+    def _compute(self, k0: int) -> _Run:
         models, cfg = self.model.models, self.model.config
         try:   # the bank's models share their reference set and thresholds: gate once
             key: Any = (k0, id(models), cfg)
@@ -301,29 +326,58 @@ class BatchedModel:
             key = None
         gated = self.stream.gated.get(key) if key is not None else None
         if gated is None:
-            R0, valid0, status0 = self.stream.base(models)
-            gated = self._gate(k0, R0[k0:].copy(), valid0[k0:].copy(), status0[k0:])
+            R0, valid0, status0, regime0 = self.stream.base(models)
+            gated = self._gate(k0, R0[k0:].copy(), valid0[k0:].copy(), status0[k0:],
+                               regime0[k0:])
             if key is not None:
                 self.stream.gated[key] = gated
-        R, valid, status = gated[0].copy(), gated[1].copy(), list(gated[2])
+        R, valid, status, regime = (gated[0].copy(), gated[1].copy(), list(gated[2]),
+                                    list(gated[3]))
         norm = np.full(R.shape[0], np.nan)
         values = R
+        C, T = self._statistics(cfg, valid, status, regime)
         if not hasattr(self.model, "directions"):   # the nominal (reference) model
             if cfg is not None:
                 rows = np.flatnonzero(valid)
-                Z = (R[rows] - np.asarray(cfg.centre)) / np.asarray(cfg.threshold)
+                Z = (R[rows] - C[rows]) / T[rows]
                 if self.model.window == 1:
                     norm[rows] = np.sqrt(np.mean(Z ** 2, axis=1))
                 else:
                     norm[rows] = _window_norms(Z, None, window=self.model.window)[1]
         else:
-            values, norm = self._hypothesis(k0, R, valid, status)
-        return (valid.tolist(), status, list(values), norm.tolist())
+            values, norm = self._hypothesis(k0, R, valid, status, regime, C, T)
+        return (valid.tolist(), status, list(values), norm.tolist(), regime)
 
-    def _hypothesis(self, k0: int, R: np.ndarray, valid: np.ndarray,
-                    status: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    @staticmethod
+    def _statistics(cfg: Any, valid: np.ndarray, status: list[str],
+                    regime: list[str]) -> tuple[np.ndarray, np.ndarray]:
+        """Per segment, the centre and thresholds of its regime (rows (N, m)); a valid segment
+        of a regime without thresholds is made "not valid here", as _finish does."""
+        N = len(regime)
+        if cfg is None:
+            return np.zeros((N, 1)), np.ones((N, 1))
+        stats = {}
+        for r in set(regime):
+            stats[r] = cfg.statistics(r) if cfg.knows(r) else None
+        for i in np.flatnonzero(valid):
+            if stats[regime[i]] is None:
+                valid[i] = False
+                status[i] = f"not valid here: no thresholds for regime {regime[i]!r}"
+        base = cfg.statistics()
+        C = np.array([(stats[r] or base)[0] for r in regime], dtype=float).reshape(N, -1)
+        T = np.array([(stats[r] or base)[1] for r in regime], dtype=float).reshape(N, -1)
+        return C, T
+
+    def _hypothesis(self, k0: int, R: np.ndarray, valid: np.ndarray, status: list[str],
+                    regime: list[str], C: np.ndarray, T: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
         h = self.model   # a fault-hypothesis model
         cfg = h.config
+        for i in np.flatnonzero(valid):
+            if not h.covers(regime[i]):
+                valid[i] = False
+                status[i] = (f"not valid here: the {h.fault} effect maps are not identified "
+                             f"in regime {regime[i]!r}")
         rows = np.flatnonzero(valid)
         cols = [self.stream.col(k) for k in h.inputs]
         missing = [name for name, (_, have) in zip(h.inputs, cols) if not have[k0:][rows].all()]
@@ -350,10 +404,10 @@ class BatchedModel:
         norm = np.full(R.shape[0], np.nan)
         values = R.copy()
         if rows.size:
-            Z = (R[rows] - np.asarray(cfg.centre)) / np.asarray(cfg.threshold)
+            Z = (R[rows] - C[rows]) / T[rows]
             s, rms = _window_norms(Z, G, window=h.window, min_effect=h.min_effect)
             norm[rows] = rms + h.penalty
-            values[rows] = R[rows] - s[:, None] * G * np.asarray(cfg.threshold)
+            values[rows] = R[rows] - s[:, None] * G * T[rows]
         return values, norm
 
 

@@ -38,7 +38,9 @@ def region_of(fv) -> str:
 def reason_class(status: str) -> str:
     """The kind of a "not valid" status (the numbers stripped)."""
     s = status.lower()
-    for key, label in (("transient", "transient inputs"), ("settling", "settling"),
+    for key, label in (("changing too fast", "temperature changing too fast"),
+                       ("transient", "transient inputs"), ("settling", "settling"),
+                       ("rate unknown", "settling"),
                        ("egr_cmd", "EGR command outside the identified region"),
                        ("swirl_cmd", "swirl command outside the identified region"),
                        ("operating point", "(n, rho2) outside the identified coverage"),

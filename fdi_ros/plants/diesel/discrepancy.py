@@ -15,7 +15,7 @@ import numpy as np
 from fdi_ros.core.discrepancy.context import LeakSpec
 from fdi_ros.core.discrepancy.model import BASELINES
 from fdi_ros.core.measured import Measured
-from fdi_ros.plants.diesel.plant import DieselParams
+from fdi_ros.plants.diesel.plant import T2_RATE_LAG, DieselParams
 
 # as in the plant and the reference identification (one source: the plant's parameters)
 R_DIESEL = DieselParams().R  # J/(kg K)
@@ -51,15 +51,29 @@ class DieselReferenceBaseline:
         return (LeakSpec(channel="maf", p_in="p2", T_in="T2", p_amb=101325.0, T_amb=298.0,
                          flow_scale=3600.0, cd=0.65),)
 
+    def _rho2(self, data: Measured) -> np.ndarray:
+        """Boost density from p2 and T2, the T2 sensor's lag undone as the reference models
+        were identified (``T2 + tau dT2/dt``, the rate over T2_RATE_LAG samples back)."""
+        T2 = np.asarray(data["T2"], float)
+        tau = self._ref.t2_tau
+        if tau > 0 and T2.size > T2_RATE_LAG:
+            t = np.asarray(data.t, float)
+            rate = np.zeros(T2.shape)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                rate[T2_RATE_LAG:] = (T2[T2_RATE_LAG:] - T2[:-T2_RATE_LAG]) \
+                    / (t[T2_RATE_LAG:] - t[:-T2_RATE_LAG])
+            T2 = T2 + tau * np.where(np.isfinite(rate), rate, 0.0)
+        return np.asarray(data["p2"], float) / (R_DIESEL * T2)
+
     def region(self, data: Measured) -> dict[str, np.ndarray]:
-        return {"n": data["n"], "rho2": data["p2"] / (R_DIESEL * data["T2"])}
+        return {"n": data["n"], "rho2": self._rho2(data)}
 
     def without_pulsation(self) -> DieselReferenceBaseline:
         return self
 
     def predict(self, data: Measured) -> dict[str, np.ndarray]:
         n = np.asarray(data["n"], float)
-        rho2 = np.asarray(data["p2"], float) / (R_DIESEL * np.asarray(data["T2"], float))
+        rho2 = self._rho2(data)
         ok = np.isfinite(n) & np.isfinite(rho2)
         eta = np.full(n.shape, np.nan)
         if ok.any():

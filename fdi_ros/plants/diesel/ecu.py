@@ -38,9 +38,11 @@ ACTUATOR_MOVE = 0.005
 GATED_ACTUATORS = ("egr_cmd", "swirl_cmd")
 
 
-def actuator_status(moved: Mapping[str, float]) -> str:
-    """The "not valid" status of actuator commands that moved (name -> change), "" if none."""
-    big = {k: v for k, v in moved.items() if v > ACTUATOR_MOVE}
+def actuator_status(moved: Mapping[str, float], limit: float | None = None) -> str:
+    """The "not valid" status of actuator commands that moved (name -> change) by more than
+    ``limit`` (None: ACTUATOR_MOVE), "" if none."""
+    limit = ACTUATOR_MOVE if limit is None else float(limit)
+    big = {k: v for k, v in moved.items() if v > limit}
     if not big:
         return ""
     what = ", ".join(f"{k} by {v:.2f}" for k, v in big.items())

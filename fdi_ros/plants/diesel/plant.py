@@ -76,6 +76,9 @@ from fdi_ros.core.constants import R_AIR
 from fdi_ros.core.crank import CrankSegmenter
 from fdi_ros.core.types import FaultEvent, SampleBlock
 
+# Slow steps between two finite-difference slopes of the boost balance (see _step).
+JACOBIAN_EVERY = 4
+
 FAULT_IDS = ("crankcase_vent_open", "leak_ic_engine", "restriction_ic_engine",
              "swirl_flap_closed", "egr_stuck_open", "egr_leaky")
 FAULT_UNITS = {"crankcase_vent_open": "mm", "leak_ic_engine": "mm",
@@ -226,12 +229,20 @@ class DieselParams:
         return 720.0 / self.n_cyl
 
 
+# The boost-temperature sensor is slow (a thermistor in a housing): its segment mean gets a
+# rate feature T2_rate over this many segments (0.12 s at 2000 rpm), from which the reference
+# models undo the sensor's lag (T2 + tau dT2/dt; tau identified with the models).
+T2_RATE_LAG = 8
+
+
 def crank_segmenter(p: DieselParams | None = None, **options: Any) -> CrankSegmenter:
     """The crank-synchronous segmenter of this engine: segment length, displacement and gas
-    constant from its parameters (their one source); ``options`` (n_harmonics, max_gap_deg,
-    or one of the three) go to :class:`~fdi_ros.core.crank.CrankSegmenter`."""
+    constant from its parameters (their one source), and the rate of the T2 sensor's mean;
+    ``options`` (n_harmonics, max_gap_deg, rate_channels, rate_lag, or one of the three) go
+    to :class:`~fdi_ros.core.crank.CrankSegmenter`."""
     p = DieselParams() if p is None else p
-    return CrankSegmenter(**{"segment_deg": p.segment_deg, "V_D": p.V_D, "R": p.R, **options})
+    return CrankSegmenter(**{"segment_deg": p.segment_deg, "V_D": p.V_D, "R": p.R,
+                             "rate_channels": ("T2",), "rate_lag": T2_RATE_LAG, **options})
 
 
 # ----------------------------------------------------------------------------- static maps
@@ -384,13 +395,17 @@ class DieselIntakePlant:
     """
 
     def __init__(self, *, params: DieselParams | None = None, seed: int = 0,
-                 dalpha_deg: float = 1.0, noise: bool = True) -> None:
+                 dalpha_deg: float = 1.0, noise: bool = True,
+                 noise_block: int | None = None) -> None:
         if not (np.isfinite(dalpha_deg) and 0.0 < dalpha_deg <= 90.0):
             raise ValueError("dalpha_deg must be within (0, 90] deg CA")
         self.p = params if params is not None else DieselParams()
         self.dalpha = float(dalpha_deg)
         self.rng = np.random.default_rng(seed)
         self.noise = bool(noise)
+        # sensor noise is drawn per this many samples (None: per call of advance), so that a
+        # run advanced in longer chunks draws exactly the noise of its logical blocks
+        self.noise_block = None if noise_block is None else max(int(noise_block), 1)
         self._faults = _FaultSchedule()
         self._c_suction = suction_harmonics(self.p)
         self._inputs = dict(n=2000.0, fuel=26.0, egr_cmd=0.0, swirl_cmd=0.0)
@@ -576,10 +591,17 @@ class DieselIntakePlant:
         p1_used = x["p1"]
         a = self._algebra(p2, inp, fz, x)
         net0 = a["m_c"] - a["m_leak"] - a["m_cyl"] + a["m_egr"]
-        dp = 5.0
-        b = self._algebra(p2 + dp, inp, fz, x)
-        net1 = b["m_c"] - b["m_leak"] - b["m_cyl"] + b["m_egr"]
-        slope = min((net1 - net0) / dp, 0.0)
+        # d(net)/dp2 by a finite difference, refreshed every JACOBIAN_EVERY steps (a
+        # linearly implicit step stays stable with a slightly old slope; it only damps)
+        self._jac_age = getattr(self, "_jac_age", JACOBIAN_EVERY)
+        if self._jac_age >= JACOBIAN_EVERY:
+            dp = 5.0
+            b = self._algebra(p2 + dp, inp, fz, x)
+            net1 = b["m_c"] - b["m_leak"] - b["m_cyl"] + b["m_egr"]
+            self._slope = min((net1 - net0) / dp, 0.0)
+            self._jac_age = 0
+        self._jac_age += 1
+        slope = self._slope
         V_b = p.V_co + p.V_ic + p.V_im + math.pi / 4.0 * p.d_d ** 2 * p.l_d
         k = p.R * x.get("T2", 320.0) / V_b
         p2_new = p2 + dt * k * net0 / (1.0 - dt * k * slope)
@@ -732,7 +754,9 @@ class DieselIntakePlant:
         T2 = lin("T2s")
         n_meas = n_true.copy()
         if self.noise:
-            r = self.rng.standard_normal((4, n_samples))
+            step = self.noise_block or n_samples
+            r = np.concatenate([self.rng.standard_normal((4, min(step, n_samples - j)))
+                                for j in range(0, n_samples, step)], axis=1)
             maf += p.sigma_maf * r[0]
             p2 += p.sigma_p2 * r[1]
             T2 += p.sigma_T2 * r[2]

@@ -26,9 +26,10 @@ circular mean, and residuals are wrapped to +-90 deg CA.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -141,6 +142,11 @@ class IdentificationConfig:
         held fixed only bound the validity region); False: (n, rho2) only, as in the paper.
     lut_actuator : breakpoints per actuator input (a command has few distinct settings: its
         distinct values when there are at most this many, else this many equidistant ones).
+    extra_inputs : further measured features that every model takes as inputs (e.g. the
+        injected fuel and the VGT command where the EGR valve is open: the recirculated gas
+        follows the exhaust back pressure); their identified ranges bound the validity too.
+    tables : sample the models into ECU look-up tables (False: the models are evaluated
+        directly, for maps of more inputs than a table holds).
     """
 
     max_models: int = 20
@@ -160,6 +166,9 @@ class IdentificationConfig:
     phase_min_amp_frac: float = 0.1
     actuator_inputs: bool = True
     lut_actuator: int = 6
+    extra_inputs: tuple[str, ...] = ()
+    tables: bool = True
+    coverage_inputs: int = 0
 
     def __post_init__(self) -> None:
         if self.block < 1:
@@ -174,7 +183,8 @@ class IdentificationConfig:
                        min_samples_per_model=self.min_samples_per_model,
                        patience=self.patience, coverage_bins=self.coverage_bins,
                        coverage_min_count=self.coverage_min_count,
-                       compress_bins=self.compress_bins)
+                       compress_bins=self.compress_bins,
+                       coverage_inputs=self.coverage_inputs)
 
 
 _LOADED: dict[tuple[str, int], ReferenceModelSet] = {}  # see ReferenceModelSet.load
@@ -196,6 +206,54 @@ class ReferenceModelSet:
     info: dict = field(default_factory=dict)
     inputs: tuple[str, ...] = INPUTS
     validity: ValidityRegion | None = None
+    #: further operating regimes, each a model set of its own (e.g. the EGR valve open), tried
+    #: in order after this one (see :meth:`assign`); saved under ``regimes/<name>/``
+    regimes: list[ReferenceModelSet] = field(default_factory=list)
+
+    @property
+    def regime(self) -> str:
+        """This set's operating regime ("" for a set identified as one regime)."""
+        return str(self.info.get("regime", ""))
+
+    @property
+    def t2_tau(self) -> float:
+        """Time constant [s] of the T2 sensor's lag that the models undo (0: none)."""
+        return float(self.info.get("t2_tau", 0.0))
+
+    def regime_sets(self) -> list[ReferenceModelSet]:
+        """This set and its further regimes, in the order they are tried."""
+        return [self, *self.regimes]
+
+    def compensate(self, data: Mapping[str, object]) -> dict[str, np.ndarray]:
+        """The features with the T2 sensor's lag undone (``T2 + tau dT2/dt`` from the
+        ``T2_rate`` feature; rho2 and eta_v follow, both ~ 1/T2): what the models were
+        identified on. Without a time constant: the features as they are."""
+        out = {k: np.atleast_1d(np.asarray(v, dtype=float)) for k, v in data.items()}
+        tau = self.t2_tau
+        if tau <= 0.0:
+            return out
+        if "T2_rate" not in out or "T2" not in out:
+            raise KeyError("T2_rate")
+        T2 = out["T2"]
+        T2c = T2 + tau * out["T2_rate"]
+        ratio = T2c / T2
+        out["T2"] = T2c
+        out["rho2"] = out["rho2"] / ratio
+        out["eta_v"] = out["eta_v"] * ratio
+        return out
+
+    def assign(self, data: Mapping[str, object], size: int) -> np.ndarray:
+        """Per segment, the position in :meth:`regime_sets` of the first regime whose
+        identified region (every input's range) holds it; -1 where none does."""
+        out = np.full(size, -1, dtype=int)
+        for j, ms in enumerate(self.regime_sets()):
+            free = out < 0
+            if not free.any():
+                break
+            inside = ms.validity.contains(data, size) if ms.validity is not None else \
+                np.ones(size, dtype=bool)
+            out[free & inside] = j
+        return out
 
     @property
     def outputs(self) -> tuple[str, ...]:
@@ -288,7 +346,12 @@ class ReferenceModelSet:
         manifest = {"type": "diesel_reference", "inputs": list(self.inputs),
                     "outputs": list(self.models), "tables": list(self.tables),
                     "phase_centre": self.phase_centre, "info": self.info,
-                    "validity": self.validity.to_dict() if self.validity else None}
+                    "validity": self.validity.to_dict() if self.validity else None,
+                    "regimes": [r.regime for r in self.regimes]}
+        for r in self.regimes:
+            if not r.regime or r.regimes:
+                raise ValueError("a further regime needs a name and no regimes of its own")
+            r.save(d / "regimes" / r.regime)
         (d / MANIFEST).write_text(json.dumps(manifest, indent=1))
         return d
 
@@ -322,7 +385,9 @@ class ReferenceModelSet:
                    phase_centre={k: float(v) for k, v in manifest["phase_centre"].items()},
                    info=manifest.get("info", {}),
                    inputs=tuple(manifest.get("inputs", INPUTS)),
-                   validity=ValidityRegion.from_dict(validity) if validity else None)
+                   validity=ValidityRegion.from_dict(validity) if validity else None,
+                   regimes=[cls._load(d / "regimes" / str(r))
+                            for r in manifest.get("regimes") or []])
 
 
 @dataclass(frozen=True)
@@ -384,22 +449,24 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
     blocks choose the number of local models, the test blocks give the reported NRMSE.
     """
     cfg = config or IdentificationConfig()
-    missing = [k for k in INPUTS + OUTPUTS if k not in data]
+    extra = tuple(cfg.extra_inputs)
+    missing = [k for k in INPUTS + OUTPUTS + extra if k not in data]
     if missing:
         raise ValueError(f"identification data lacks {missing}")
     finite = np.ones(np.asarray(data["n"]).shape[0], dtype=bool)
-    for k in INPUTS + OUTPUTS + tuple(a for a in ACTUATORS if a in data):
+    for k in INPUTS + OUTPUTS + extra + tuple(a for a in ACTUATORS if a in data):
         finite &= np.isfinite(np.asarray(data[k], dtype=float))
     # Actuator commands the data span are model inputs; held ones bound the validity only.
     spanned = tuple(a for a in ACTUATORS if cfg.actuator_inputs and a in data and
                     np.ptp(np.asarray(data[a], dtype=float)[finite]) > ACTUATOR_TOL[a])
-    inputs = INPUTS + spanned
+    inputs = INPUTS + spanned + tuple(k for k in extra if k not in spanned)
     X = np.column_stack([np.asarray(data[k], dtype=float) for k in inputs])[finite]
     if X.shape[0] < 10 * cfg.min_samples_per_model:
         raise ValueError(f"only {X.shape[0]} usable segments: too few to identify the models")
+    bounded = INPUTS + ACTUATORS + tuple(k for k in extra if k not in ACTUATORS)
     validity = ValidityRegion.learn({k: np.asarray(data[k], dtype=float)[finite]
-                                     for k in INPUTS + ACTUATORS if k in data},
-                                    INPUTS + ACTUATORS, tolerance=ACTUATOR_TOL,
+                                     for k in bounded if k in data},
+                                    bounded, tolerance=ACTUATOR_TOL,
                                     rel_tolerance=0.0, units=UNITS)
     tr, va, te = split_blocks(X.shape[0], block=cfg.block, seed=cfg.seed)
     n_bp = np.asarray(cfg.lut_n, dtype=float)
@@ -409,7 +476,7 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
     if r_bp.size == 0:
         r_bp = np.linspace(X[:, 1].min(), X[:, 1].max(), 13)
     bps = (n_bp, r_bp) + tuple(actuator_breakpoints(X[:, 2 + j], cfg.lut_actuator)
-                               for j in range(len(spanned)))
+                               for j in range(len(spanned))) if cfg.tables else None
     models, tables, results, centres, min_amp = {}, {}, {}, {}, {}
     nr_tr, nr_te, nr_lut, lut_err = {}, {}, {}, {}
     t0 = time.perf_counter()
@@ -420,7 +487,8 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
     storage = 0.0
     xs = None
     if cfg.storage_correction and all(k in data for k in ("t", "p2")):
-        xs = storage_regressor(data["t"], data["n"], data["p2"], cfg.rate_lag)[finite]
+        xs = (np.asarray(data["storage_x"], dtype=float) if "storage_x" in data else
+              storage_regressor(data["t"], data["n"], data["p2"], cfg.rate_lag))[finite]
     for k in outputs:
         y = np.asarray(data[k], dtype=float)[finite]
         if k == "eta_v" and xs is not None:
@@ -474,10 +542,10 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
                 res = m.fit(X[ktr], vals[ktr], X_val=X[kva], y_val=vals[kva],
                             progress=progress, input_names=inputs, output_name=name)
                 models[name], results[name] = m, res
-                tables[name] = LookupTable.from_model(m.predict, bps,
-                                                      region=m.in_region, input_names=inputs,
-                                                      output_name=name)
-                pred[comp] = (m.predict, tables[name])
+                tab = _table(m, bps, inputs, name)
+                if tab is not None:
+                    tables[name] = tab
+                pred[comp] = (m.predict, tab or m.predict)
             yw = wrap_phase(y, centres[k])
 
             def phase_of(Xs, use_table, pred=pred):
@@ -500,12 +568,14 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
         res = m.fit(X[ktr], y[ktr], X_val=X[kva], y_val=y[kva], progress=progress,
                     input_names=inputs, output_name=k)
         models[k], results[k] = m, res
-        tables[k] = LookupTable.from_model(m.predict, bps, region=m.in_region,
-                                           input_names=inputs, output_name=k)
+        tab = _table(m, bps, inputs, k)
+        if tab is not None:
+            tables[k] = tab
         nr_tr[k] = nrmse(y[ktr], m.predict(X[ktr]))
         nr_te[k] = nrmse(y[kte], m.predict(X[kte]))
-        nr_lut[k] = nrmse(y[kte], tables[k](X[kte]))
-        lut_err[k] = table_error(m.predict, tables[k], X[kte])
+        nr_lut[k] = nrmse(y[kte], (tab or m.predict)(X[kte]))
+        lut_err[k] = table_error(m.predict, tab, X[kte]) if tab is not None else \
+            {"rmse": 0.0, "n_points": int(kte.size)}
     train_s = time.perf_counter() - t0
     info = {"nrmse_test": nr_te, "storage_coeff": storage, "phase_min_amp": min_amp,
             "n_models": {k: r.n_models for k, r in results.items()},
@@ -518,6 +588,152 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
                                 n_train=int(tr.size), n_val=int(va.size), n_test=int(te.size),
                                 train_s=train_s, success=all(r.success for r in results.values()),
                                 message="identified five reference models")
+
+
+# Operating regimes of the diesel's reference models, in the order they are tried: the
+# paper's (EGR valve closed, swirl flaps open: the ECU maps and tables of the paper), then the
+# part-load regimes where the ECU recirculates exhaust gas, with the flaps open or closed.
+# Each: (name, EGR valve open?, filling ports closed?).
+REGIMES = (("egr_closed_flaps_open", False, False), ("egr_open_flaps_open", True, False),
+           ("egr_open_flaps_closed", True, True))
+# Inputs besides (n, rho2, egr_cmd) of the maps where the EGR valve is open: the recirculated
+# gas follows the exhaust back pressure, set by the VGT and the exhaust flow (fuel), and heats
+# the charge (T2).
+OPEN_EGR_INPUTS = ("fuel", "vgt", "T2")
+# The boost temperature's rate [K/s] beyond which the static maps do not hold (a valve that
+# opened or closed moments ago, a load step heating the intercooler): such segments are left
+# out of the identification, and on line they are "transient" (a regime of their own).
+TEMPERATURE_SETTLED = 3.0
+# Fewest segments a regime needs in the identification data to get models of its own, and
+# the stride of the segments its maps are fitted on.
+MIN_REGIME_SEGMENTS = 2000
+REGIME_STRIDE = 2
+# Time constants [s] of the T2 sensor's lag tried by identify_t2_tau (its search bounds).
+T2_TAU_BOUNDS = (0.0, 3.0)
+
+
+def regime_labels(data: Mapping[str, np.ndarray]) -> np.ndarray:
+    """The regime of each segment by its actuator commands ("" where none of
+    :data:`REGIMES`: e.g. flaps moving, or closed with the EGR valve closed)."""
+    n = np.asarray(data["n"]).shape[0]
+    egr = np.asarray(data["egr_cmd"], dtype=float) if "egr_cmd" in data else np.zeros(n)
+    swirl = np.asarray(data["swirl_cmd"], dtype=float) if "swirl_cmd" in data else np.zeros(n)
+    tol_e, tol_s = ACTUATOR_TOL["egr_cmd"], ACTUATOR_TOL["swirl_cmd"]
+    out = np.full(n, "", dtype=object)
+    for name, egr_open, closed in REGIMES:
+        e_ok = egr > tol_e if egr_open else np.abs(egr) <= tol_e
+        s_ok = np.abs(swirl - 1.0) <= tol_s if closed else np.abs(swirl) <= tol_s
+        out[(out == "") & e_ok & s_ok] = name
+    return out
+
+
+def compensate_t2(data: Mapping[str, np.ndarray], tau: float) -> dict[str, np.ndarray]:
+    """``data`` with the T2 sensor's lag undone (as :meth:`ReferenceModelSet.compensate`)."""
+    probe = ReferenceModelSet(models={}, tables={}, info={"t2_tau": float(tau)})
+    return probe.compensate(data)
+
+
+def identify_t2_tau(data: Mapping[str, np.ndarray], config: IdentificationConfig) -> float:
+    """The T2 sensor's time constant [s] whose compensation lets the static eta_V map of
+    (n, rho2) predict the held-out (validation) segments best: a slow sensor makes rho2 and
+    eta_V wrong in every temperature transient, by ``tau dT2/dt / T2``."""
+    from scipy.optimize import minimize_scalar
+
+    n_rows = np.asarray(data["n"]).shape[0]
+    tr, va, _ = split_blocks(n_rows, block=config.block, seed=config.seed)
+    step = max(1, n_rows // 20000)   # every step-th segment: the search fits many maps
+    tr, va = tr[::step], va[::step]
+
+    x = np.nan_to_num(np.asarray(data.get("storage_x", np.zeros(n_rows)), dtype=float))
+
+    def val_rmse(tau: float) -> float:
+        d = compensate_t2(data, tau)
+        X = np.column_stack([d[k] for k in INPUTS])
+        y = d["eta_v"]
+        ok = np.all(np.isfinite(X), axis=1) & np.isfinite(y)
+        t, v = tr[ok[tr]], va[ok[va]]
+        m = config.lolimot()
+        m.fit(X[t], y[t])
+        # the stored air's share by least squares on what the map leaves, then the map again
+        e = y[t] - m.predict(X[t])
+        c = float(x[t] @ e / (x[t] @ x[t])) if float(x[t] @ x[t]) > 0 else 0.0
+        m.fit(X[t], y[t] - c * x[t])
+        return float(np.sqrt(np.mean((y[v] - c * x[v] - m.predict(X[v])) ** 2)))
+
+    opt = minimize_scalar(val_rmse, bounds=T2_TAU_BOUNDS, method="bounded",
+                          options={"xatol": 0.02, "maxiter": 25})
+    return float(opt.x) if opt.fun < val_rmse(0.0) else 0.0
+
+
+def identify_regime_models(data: Mapping[str, np.ndarray], *,
+                           config: IdentificationConfig | None = None,
+                           progress: bool = False, further_regimes: bool = True,
+                           log: Callable[[str], None] = lambda s: None) -> IdentificationResult:
+    """The reference models of every operating regime the data hold enough of.
+
+    1. The T2 sensor's time constant, from the base regime's data (:func:`identify_t2_tau`),
+       when the data have the ``T2_rate`` feature; every regime's data compensated with it.
+    2. The base regime (:data:`REGIMES`, first): the paper's five maps of (n, rho2), as
+       :func:`identify_reference_models` (ECU tables, storage correction).
+    3. With ``further_regimes``, each further regime with at least
+       :data:`MIN_REGIME_SEGMENTS` segments: maps of
+       (n, rho2, egr_cmd, fuel, vgt, T2) evaluated directly (no table holds six inputs), its
+       eta_V corrected for the stored air with the base regime's coefficient (the boost
+       volume's physics does not change with the valve).
+    Returns the base regime's result; its model set holds the others in ``regimes``.
+    """
+    cfg = config or IdentificationConfig()
+    labels = regime_labels(data)
+    sel = {name: labels == name for name, _, _ in REGIMES}
+    base_name = REGIMES[0][0]
+    if sel[base_name].sum() < 10 * cfg.min_samples_per_model:
+        raise ValueError(f"only {int(sel[base_name].sum())} segments with the EGR valve "
+                         "closed and the flaps open: too few to identify the base regime")
+    rows = {k: {c: np.asarray(v)[m] for c, v in data.items()} for k, m in sel.items()}
+    tau = 0.0
+    if "T2_rate" in data:
+        # the sensor's lag shows in the temperature transients (the EGR valve opening and
+        # closing in the ECU's passes among them): identified on all of the base regime's
+        # segments, the maps then on those whose temperature has settled (as on line)
+        tau = identify_t2_tau(rows[base_name], cfg)
+        log(f"[identify] T2 sensor time constant {tau:.2f} s")
+        rows = {k: compensate_t2(v, tau) for k, v in rows.items()}
+        rows = {k: {c: v[np.abs(d["T2_rate"]) <= TEMPERATURE_SETTLED] for c, v in d.items()}
+                for k, d in rows.items()}
+    res = identify_reference_models(rows[base_name], config=cfg, progress=progress)
+    base = res.models
+    base.info.update(regime=base_name, t2_tau=tau,
+                     regime_nrmse_test={base_name: res.nrmse_test},
+                     regime_segments={base_name: int(sel[base_name].sum())})
+    coeff = float(base.info.get("storage_coeff", 0.0))
+    for name, _, _ in REGIMES[1:] if further_regimes else ():
+        d = rows[name]
+        if d["n"].size < MIN_REGIME_SEGMENTS or not all(k in d for k in OPEN_EGR_INPUTS):
+            continue
+        # every other segment: neighbours 15 ms apart repeat each other, and six-input maps
+        # cost several times the paper's two-input ones
+        d = {k: v[::REGIME_STRIDE] for k, v in d.items()}
+        if "storage_x" in d:
+            d["eta_v"] = d["eta_v"] - coeff * np.nan_to_num(d["storage_x"])
+        # the joint coverage over the operating point (n, rho2): a six-input grid is empty
+        rcfg = dataclasses.replace(cfg, extra_inputs=OPEN_EGR_INPUTS, tables=False,
+                                   storage_correction=False, coverage_inputs=2)
+        r = identify_reference_models(d, config=rcfg, progress=progress)
+        r.models.info.update(regime=name, t2_tau=tau)
+        base.regimes.append(r.models)
+        base.info["regime_nrmse_test"][name] = r.nrmse_test
+        base.info["regime_segments"][name] = int(d["n"].size)
+        log(f"[identify] regime {name}: {d['n'].size} segments, held-out NRMSE "
+            + ", ".join(f"{k} {v:.3f}" for k, v in r.nrmse_test.items()))
+    return res
+
+
+def _table(m: Lolimot, bps, inputs: tuple[str, ...], name: str) -> LookupTable | None:
+    """The ECU look-up table of one identified map (None: tables are not wanted)."""
+    if bps is None:
+        return None
+    return LookupTable.from_model(m.predict, bps, region=m.in_region, input_names=inputs,
+                                  output_name=name)
 
 
 def table_grid_errors(models: ReferenceModelSet, X: np.ndarray,

@@ -148,7 +148,7 @@ def count_false_symptoms(states) -> dict:
 
 
 def _load_or_build(args, progress: bool):
-    from fdi_ros.plants.diesel.identify import DEFAULT_DRIVE, DEFAULT_IDENT, build_models
+    from fdi_ros.plants.diesel.identify import build_reference_models
     from fdi_ros.plants.diesel.reference import ReferenceModelSet
     from fdi_ros.plants.diesel.symptoms import load_symptom_config
 
@@ -157,8 +157,7 @@ def _load_or_build(args, progress: bool):
         cfg = load_symptom_config(d)
         if cfg is not None:
             return ReferenceModelSet.load(d), cfg, None
-    res, cfg, report = build_models(DEFAULT_IDENT, out=d, seed=0, fault_free=DEFAULT_DRIVE,
-                                    progress=progress)
+    res, cfg, report = build_reference_models(d, seed=0, progress=progress)
     return res.models, cfg, report
 
 

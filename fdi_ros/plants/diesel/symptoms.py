@@ -37,15 +37,18 @@ from fdi_ros.core.fst import isolate as _isolate
 from fdi_ros.core.fst import load_fault_symptom_tables as _load_tables
 from fdi_ros.core.sliding import SlidingRange
 from fdi_ros.core.symptoms import (
+    TOO_FAST,
+    TRANSIENT_SUFFIX,
     SymptomConfig,
     SymptomGenerator,
     SymptomState,
     load_thresholds,
+    rate_status,
 )
 from fdi_ros.core.symptoms import calibrate_thresholds as _calibrate
 from fdi_ros.core.types import FeatureVector, ResidualVector
 from fdi_ros.plants.diesel.ecu import ACTUATOR_SETTLE_S, GATED_ACTUATORS, actuator_status
-from fdi_ros.plants.diesel.reference import ReferenceModelSet, wrap_phase
+from fdi_ros.plants.diesel.reference import TEMPERATURE_SETTLED, ReferenceModelSet, wrap_phase
 
 if TYPE_CHECKING:
     from fdi_ros.core.lolimot import Lolimot
@@ -74,16 +77,9 @@ PAPER_TABLE = FaultSymptomTable(SYMPTOMS, {
 })
 
 
-def parity_residuals(models: ReferenceModelSet, data: Mapping[str, np.ndarray], *,
-                     use_tables: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Residuals (N, 5) in :data:`RESIDUALS` order and a validity flag (N,).
-
-    ``data`` holds arrays ``n, rho2, eta_v, maf_amp, maf_phase, p2_amp, p2_phase`` and the
-    actuator commands the models' validity region bounds (``egr_cmd``, ``swirl_cmd``). Invalid
-    rows (outside the identified region of any input, or non-finite) keep their numbers but
-    are flagged; :func:`region_status` says why.
-    """
-    n = np.atleast_1d(np.asarray(data["n"], dtype=float))
+def _parity_of(models: ReferenceModelSet, data: Mapping[str, np.ndarray], n: np.ndarray, *,
+               use_tables: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals and validity of the segments of ``data`` against one regime's model set."""
     ref, valid = models.predict(n, np.atleast_1d(np.asarray(data["rho2"], dtype=float)),
                                 use_tables=use_tables,
                                 extra={k: data[k] for k in models.extra_inputs if k in data})
@@ -99,7 +95,54 @@ def parity_residuals(models: ReferenceModelSet, data: Mapping[str, np.ndarray], 
             weak = ref[k.replace("phase", "amp")] < float(min_amp.get(k, -np.inf))
             d = np.where(weak, 0.0, d)
         R[:, j] = d
-    valid = valid & np.all(np.isfinite(R), axis=1)
+    return R, valid & np.all(np.isfinite(R), axis=1)
+
+
+def _rows(data: Mapping[str, object], size: int) -> dict[str, np.ndarray]:
+    return {k: np.broadcast_to(np.atleast_1d(np.asarray(v, dtype=float)), (size,))
+            for k, v in data.items()}
+
+
+def parity(models: ReferenceModelSet, data: Mapping[str, object], *,
+           use_tables: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Residuals (N, 5) in :data:`RESIDUALS` order, a validity flag (N,) and the operating
+    regime of each segment (N,): the first of the model set's regimes whose identified region
+    holds the segment (:meth:`ReferenceModelSet.assign`), after the T2 sensor's lag is undone
+    (:meth:`ReferenceModelSet.compensate`).
+
+    ``data`` holds arrays ``n, rho2, eta_v, maf_amp, maf_phase, p2_amp, p2_phase`` and every
+    other input the regimes read or are bounded by (actuator commands, fuel, T2 and its rate).
+    Invalid rows (outside every regime, or non-finite) keep the numbers of the first regime but
+    are flagged; :func:`region_status` says why.
+    """
+    size = np.atleast_1d(np.asarray(data["n"], dtype=float)).size
+    try:
+        data = models.compensate(_rows(data, size))
+    except KeyError:   # no T2 rate to undo the sensor's lag with (region_status says so)
+        return (np.full((size, len(RESIDUALS)), np.nan), np.zeros(size, dtype=bool),
+                np.full(size, models.regime, dtype=object))
+    n = data["n"]
+    sets = models.regime_sets()
+    where = models.assign(data, size) if len(sets) > 1 else np.zeros(size, dtype=int)
+    R = np.empty((size, len(RESIDUALS)))
+    valid = np.zeros(size, dtype=bool)
+    regime = np.empty(size, dtype=object)
+    target = np.maximum(where, 0)
+    for j, ms in enumerate(sets):
+        rows = np.flatnonzero(target == j)
+        if rows.size == 0:
+            continue
+        sub = data if rows.size == size else {k: v[rows] for k, v in data.items()}
+        R[rows], valid[rows] = _parity_of(ms, sub, n[rows], use_tables=use_tables)
+        regime[rows] = ms.regime
+    valid &= where >= 0
+    return R, valid, regime
+
+
+def parity_residuals(models: ReferenceModelSet, data: Mapping[str, object], *,
+                     use_tables: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`parity` without the regimes: residuals (N, 5) and a validity flag (N,)."""
+    R, valid, _ = parity(models, data, use_tables=use_tables)
     return R, valid
 
 
@@ -107,25 +150,54 @@ FEATURES = ("n", "rho2", "eta_v", "maf_amp", "maf_phase", "p2_amp", "p2_phase")
 
 
 def model_features(models: ReferenceModelSet) -> tuple[str, ...]:
-    """Feature names the residuals of ``models`` read: the characteristic values, the model
-    inputs and every input of the validity region."""
-    extra = tuple(models.validity.names) if models.validity is not None else ()
-    return FEATURES + tuple(k for k in models.inputs + extra if k not in FEATURES)
+    """Feature names the residuals of ``models`` read: the characteristic values, every
+    regime's inputs and the inputs of its validity region, T2 and its rate when the sensor's
+    lag is undone."""
+    extra: list[str] = []
+    for ms in models.regime_sets():
+        extra += list(ms.inputs) + (list(ms.validity.names) if ms.validity is not None else [])
+    if models.t2_tau > 0:
+        extra += ["T2", "T2_rate"]
+    return FEATURES + tuple(dict.fromkeys(k for k in extra if k not in FEATURES))
 
 
-def region_status(models: ReferenceModelSet, data: Mapping[str, np.ndarray],
+def region_status(models: ReferenceModelSet, data: Mapping[str, object],
                   joint_ok: np.ndarray) -> list[str]:
     """Why each segment is outside the models' identified region ("" inside): the inputs
     outside their identified ranges (e.g. the EGR valve open for models identified with it
-    closed), else the operating point outside the joint coverage of the identification."""
-    n = np.atleast_1d(np.asarray(data["n"], dtype=float))
-    _, why = models.check(data, n.size)
-    rho2 = np.atleast_1d(np.asarray(data["rho2"], dtype=float))
+    closed; with several regimes, each regime's reasons), else the operating point outside the
+    joint coverage of the identification."""
+    size = np.atleast_1d(np.asarray(data["n"], dtype=float)).size
+    raw = _rows(data, size)
+    try:
+        data = models.compensate(raw)
+    except KeyError:
+        return ["not valid here: T2_rate missing from the features"] * size
+    sets = models.regime_sets()
+    where = models.assign(data, size) if len(sets) > 1 else np.zeros(size, dtype=int)
+    checks = [ms.check(data, size)[1] for ms in sets]
+    n, rho2 = data["n"], data["rho2"]
     out = []
-    for i, w in enumerate(why):
-        if not w and not joint_ok[i]:
+    for i in range(size):
+        if joint_ok[i]:
+            out.append("")
+            continue
+        if models.t2_tau > 0 and not np.isfinite(raw["T2_rate"][i]):
+            out.append("not valid here: boost temperature rate unknown (too little history "
+                       "after a gap)")
+            continue
+        if len(sets) == 1:
+            w = checks[0][i]
+        elif where[i] < 0:
+            w = "not valid here: no operating regime covers it (" + "; ".join(
+                f"{ms.regime}: {c[i].removeprefix('not valid here: ')}"
+                for ms, c in zip(sets, checks)) + ")"
+        else:
+            w = ""
+        if not w:
+            within = f" of regime {sets[where[i]].regime}" if len(sets) > 1 else ""
             w = (f"not valid here: operating point n = {n[i]:.0f} rpm, rho2 = "
-                 f"{rho2[i]:.3f} kg/m^3 outside the identified region")
+                 f"{rho2[i]:.3f} kg/m^3 outside the identified region{within}")
         out.append(w)
     return out
 
@@ -163,11 +235,12 @@ def residual_vector(models: ReferenceModelSet, fv: FeatureVector, *, model_id: s
     except KeyError as exc:
         data, status = None, f"feature missing: {exc}"
     valid = bool(fv.valid) and data is not None
+    regime = models.regime
     if data is not None:
         data.update({k: np.array([fv.get(k)]) for k in model_features(models)[len(FEATURES):]
                      if k in fv.names})
-        R, ok = parity_residuals(models, data)
-        r = R[0]
+        R, ok, regimes = parity(models, data)
+        r, regime = R[0], str(regimes[0])
         if not fv.valid:
             status = fv.status or "features not valid"
         elif not ok[0]:
@@ -181,7 +254,7 @@ def residual_vector(models: ReferenceModelSet, fv: FeatureVector, *, model_id: s
         norm = float(np.sqrt(np.mean(z ** 2)))
     return ResidualVector(model_id=model_id, index=fv.index, t=fv.t_end, valid=valid,
                           status=status, names=RESIDUALS, units=RESIDUAL_UNITS,
-                          values=np.asarray(r, dtype=float), norm=norm)
+                          values=np.asarray(r, dtype=float), norm=norm, regime=regime)
 
 
 # (id of the reference set, segment) -> (reference set, residuals): see shared_residual_vector
@@ -279,44 +352,63 @@ class QuasiStationarity:
         df = float(max(fs) - min(fs)) if all(math.isfinite(f) for f in fs) else 0.0
         return dn <= c.max_speed_change and df <= c.max_fuel_change, dn, df
 
+    def rates_beyond(self, fv: FeatureVector, invalid: bool = False) -> str:
+        """The transient status if a feature of the gate's ``max_rates`` (``invalid``: of
+        its ``invalid_rates``) is beyond its limit ("" if none; a missing or unknown rate
+        counts as settled)."""
+        c = self.config
+        if c is None:
+            return ""
+        lim = c.invalid_rates if invalid else c.max_rates
+        return rate_status({k: fv.get(k) for k in lim if k in fv.names}, lim,
+                           TOO_FAST if invalid else "transient")
+
     def actuators_moved(self) -> str:
         """The "not valid" status if an actuator command moved within ACTUATOR_SETTLE_S."""
         ranges = {k: r.range() for k, r in self._acts.items()}
-        return actuator_status({k: float(v) for k, v in ranges.items() if v is not None})
+        return actuator_status({k: float(v) for k, v in ranges.items() if v is not None},
+                               self.config.actuator_move if self.config else None)
 
-    def apply(self, fv: FeatureVector, r: np.ndarray, valid: bool,
-              status: str) -> tuple[np.ndarray, bool, str]:
-        """Correct r_eta and gate one segment (r from :func:`parity_residuals`)."""
+    def apply(self, fv: FeatureVector, r: np.ndarray, valid: bool, status: str,
+              regime: str = "") -> tuple[np.ndarray, bool, str, str]:
+        """Correct r_eta and gate one segment (r from :func:`parity`): a transient segment
+        is "not valid here" or, with ``transients: regime``, of the regime
+        ``<regime>/transient``. Returns (residuals, valid, status, regime)."""
         c = self.config
         if c is None or not self.active:
-            return r, valid, status
+            return r, valid, status, regime
         _, dp = self.rates(fv)
         if not valid:
-            return r, valid, status
+            return r, valid, status, regime
         ok, dn, df = self.settled()
         if not np.isfinite(dp) or not np.isfinite(dn):
-            return r, False, "not valid here: settling (too little history after a gap)"
-        if not ok:
-            return r, False, (f"not valid here: transient inputs (speed moved {dn:.0f} rpm, "
-                              f"fuel {df:.1f} mg within {c.settle_s:g} s)")
-        moved = self.actuators_moved()
-        if moved:
-            return r, False, moved
+            return r, False, "not valid here: settling (too little history after a gap)", regime
+        fast = self.rates_beyond(fv, invalid=True)
+        if fast:
+            return r, False, fast, regime
+        why = "" if ok else (f"not valid here: transient inputs (speed moved {dn:.0f} rpm, "
+                             f"fuel {df:.1f} mg within {c.settle_s:g} s)")
+        why = why or self.actuators_moved() or self.rates_beyond(fv)
+        if why and c.transients == "not_valid":
+            return r, False, why, regime
         r = r.copy()
         j = c.names.index("r_eta") if "r_eta" in c.names else None
         if j is not None and c.storage_coeff:
             r[j] += c.storage_coeff * dp / (fv.get("n") * fv.get("p2"))
-        return r, valid, status
+        return r, valid, status, regime + TRANSIENT_SUFFIX if why else regime
 
 
-def _finish(fv: FeatureVector, r: np.ndarray, valid: bool, status: str,
+def _finish(fv: FeatureVector, r: np.ndarray, valid: bool, status: str, regime: str,
             cfg: SymptomConfig | None, model_id: str) -> ResidualVector:
     norm = float("nan")
     if valid and cfg is not None:
-        norm = float(np.sqrt(np.mean(_z(r, cfg) ** 2)))
+        if not cfg.knows(regime):
+            valid, status = False, f"not valid here: no thresholds for regime {regime!r}"
+        else:
+            norm = float(np.sqrt(np.mean(_z(r, cfg, regime) ** 2)))
     return ResidualVector(model_id=model_id, index=fv.index, t=fv.t_end, valid=valid,
                           status=status, names=RESIDUALS, units=RESIDUAL_UNITS,
-                          values=np.asarray(r, dtype=float), norm=norm)
+                          values=np.asarray(r, dtype=float), norm=norm, regime=regime)
 
 
 # ---------------------------------------------------------------------- bank models
@@ -349,12 +441,12 @@ def block_rms(E: np.ndarray, block: int = 10) -> float:
     return float(np.sqrt(np.mean(means ** 2)))
 
 
-def _z(r: np.ndarray, cfg: SymptomConfig | None) -> np.ndarray:
-    """Residuals centred and divided by their symptom thresholds (comparable across models:
-    fault-free they stay within +-1 after filtering)."""
+def _z(r: np.ndarray, cfg: SymptomConfig | None, regime: str = "") -> np.ndarray:
+    """Residuals centred and divided by their regime's symptom thresholds (comparable across
+    models and regimes: fault-free they stay within +-1 after filtering)."""
     if cfg is None:
         return np.full(r.shape, np.nan)
-    return (r - np.asarray(cfg.centre)) / np.asarray(cfg.threshold)
+    return cfg.normalise(r, regime)
 
 
 class _Batchable:
@@ -367,7 +459,7 @@ class _Batchable:
         from fdi_ros.plants.diesel.batch import Parity, batched
 
         return batched(self, features, shared,
-                       Parity(parity_residuals, residual_vector, RESIDUALS, RESIDUAL_UNITS,
+                       Parity(parity, residual_vector, RESIDUALS, RESIDUAL_UNITS,
                               FEATURES, model_features, region_status))
 
 
@@ -397,13 +489,13 @@ class ReferenceResidualModel(_Batchable):
     def residuals(self, fv: FeatureVector) -> ResidualVector:
         cfg = self.config
         rv = shared_residual_vector(self.models, fv, model_id=self.model_id)
-        rv = _finish(fv, *self._qs.apply(fv, rv.values, rv.valid, rv.status), cfg,
+        rv = _finish(fv, *self._qs.apply(fv, rv.values, rv.valid, rv.status, rv.regime), cfg,
                      self.model_id)
         if self.window == 1 or not rv.valid or cfg is None:
             # Invalid segments (transients) are skipped, not forgotten: the window spans the
             # quasi-stationary stretches on either side, i.e. several operating points.
             return rv
-        self._zbuf.append(_z(rv.values, cfg))
+        self._zbuf.append(_z(rv.values, cfg, rv.regime))
         return ResidualVector(**{**rv.__dict__, "norm": block_rms(np.array(self._zbuf))})
 
 
@@ -421,11 +513,16 @@ class FaultHypothesisResidualModel(_Batchable):
     nominal model; ``z`` are residuals in units of their symptom thresholds). If the fitted
     effect ``s g`` stays below ``min_effect`` thresholds in every residual, nothing is
     explained and the norm is that of ``z`` plus the penalty.
+
+    ``regimes``: the operating regimes the effect maps were identified in (None: any); in
+    another regime the model is "not valid here" (a fault's effect with the EGR valve open is
+    not the effect with it closed).
     """
 
     def __init__(self, *, models: ReferenceModelSet, config: SymptomConfig, fault: str,
                  directions: Mapping[str, Lolimot], model_id: str, window: int = 40,
-                 penalty: float = DEFAULT_PENALTY, min_effect: float = 1.0) -> None:
+                 penalty: float = DEFAULT_PENALTY, min_effect: float = 1.0,
+                 regimes: Sequence[str] | None = None) -> None:
         if config is None:
             raise ValueError("a fault-hypothesis model needs the fault-free residual scales")
         if int(window) < 1:
@@ -439,9 +536,19 @@ class FaultHypothesisResidualModel(_Batchable):
         self.window = int(window)
         self.penalty = float(penalty)
         self.min_effect = float(min_effect)
+        self.regimes = None if regimes is None else tuple(str(r) for r in regimes)
         self._buf: deque = deque(maxlen=self.window)
         self.size_estimate = 0.0
         self._qs = QuasiStationarity(config)
+
+    def covers(self, regime: str) -> bool:
+        """Whether the effect maps were identified in ``regime``."""
+        return self.regimes is None or regime in self.regimes
+
+    def _elsewhere(self, rv: ResidualVector) -> ResidualVector:
+        return ResidualVector(**{**rv.__dict__, "valid": False, "norm": float("nan"),
+                                 "status": f"not valid here: the {self.fault} effect maps are "
+                                           f"not identified in regime {rv.regime!r}"})
 
     def reset(self) -> None:
         self._buf.clear()
@@ -465,10 +572,12 @@ class FaultHypothesisResidualModel(_Batchable):
 
     def residuals(self, fv: FeatureVector) -> ResidualVector:
         rv = shared_residual_vector(self.models, fv, model_id=self.model_id)
-        rv = _finish(fv, *self._qs.apply(fv, rv.values, rv.valid, rv.status), None,
-                     self.model_id)
+        rv = _finish(fv, *self._qs.apply(fv, rv.values, rv.valid, rv.status, rv.regime),
+                     self.config, self.model_id)
         if not rv.valid:
             return rv
+        if not self.covers(rv.regime):
+            return self._elsewhere(rv)
         try:
             g = self.direction([[fv.get(k) for k in self.inputs]])[0]
         except KeyError as exc:
@@ -480,7 +589,7 @@ class FaultHypothesisResidualModel(_Batchable):
         return self._step(rv, g)
 
     def _step(self, rv: ResidualVector, g: np.ndarray) -> ResidualVector:
-        z = _z(rv.values, self.config)
+        z = _z(rv.values, self.config, rv.regime)
         self._buf.append((z, g))
         Z = np.array([b[0] for b in self._buf])
         G = np.array([b[1] for b in self._buf])
@@ -492,7 +601,7 @@ class FaultHypothesisResidualModel(_Batchable):
         # beats the nominal model on fault-free data).
         explains = float(np.max(np.abs(s * G.mean(axis=0)))) >= self.min_effect
         norm = block_rms(Z - s * G if explains else Z) + self.penalty
-        values = rv.values - s * g * np.asarray(self.config.threshold)
+        values = rv.values - s * g * self.config.statistics(rv.regime)[1]
         return ResidualVector(**{**rv.__dict__, "values": values, "norm": norm})
 
     def stream(self, features: Sequence[FeatureVector]) -> list[ResidualVector]:
@@ -501,8 +610,9 @@ class FaultHypothesisResidualModel(_Batchable):
         feats = list(features)
         self.reset()
         base = stream_residuals(self.models, feats, config=self.config, model_id=self.model_id)
-        idx = [i for i, rv in enumerate(base) if rv.valid]
-        out = [ResidualVector(**{**rv.__dict__, "norm": float("nan")}) for rv in base]
+        out = [ResidualVector(**{**rv.__dict__, "norm": float("nan")}) if self.covers(rv.regime)
+               or not rv.valid else self._elsewhere(rv) for rv in base]
+        idx = [i for i, rv in enumerate(out) if rv.valid]
         if not idx:
             return out
         try:
@@ -530,7 +640,8 @@ class FaultHypothesisResidualModel(_Batchable):
             m.save(d / f"{name}.npz")
         (d / "hypothesis.json").write_text(json.dumps(
             {"fault": self.fault, "directions": sorted(self.directions),
-             "window": self.window, "penalty": self.penalty, "min_effect": self.min_effect}))
+             "window": self.window, "penalty": self.penalty, "min_effect": self.min_effect,
+             "regimes": None if self.regimes is None else list(self.regimes)}))
         return d
 
 
@@ -552,7 +663,8 @@ def identify_fault_hypothesis(models: ReferenceModelSet, config: SymptomConfig,
                               t_from: float, residual_names: Sequence[str] = RESIDUALS,
                               inputs: Sequence[str] = ("n", "rho2", "fuel"),
                               max_models: int = 8, model_id: str | None = None,
-                              window: int = 40) -> FaultHypothesisResidualModel:
+                              window: int = 40, regimes: Sequence[str] | None = None
+                              ) -> FaultHypothesisResidualModel:
     """Identify the effect map ``g(x)`` from feature vectors with the fault (of ``size``)
     present from plant time ``t_from`` on: LOLIMOT fits of the normalised nominal residuals
     divided by the size, over ``inputs`` (fuel matters: an EGR leak flow follows the exhaust
@@ -563,10 +675,11 @@ def identify_fault_hypothesis(models: ReferenceModelSet, config: SymptomConfig,
         raise ValueError("fault size must be positive")
     feats = [fv for fv in features if fv.t_start >= t_from]
     rvs = stream_residuals(models, feats, config=config)
-    keep = [i for i, rv in enumerate(rvs) if rv.valid]
+    regimes = (models.regime,) if regimes is None else tuple(regimes)
+    keep = [i for i, rv in enumerate(rvs) if rv.valid and rv.regime in regimes]
     if len(keep) < 200:
         raise ValueError(f"only {len(keep)} valid faulty segments: too few for {fault}")
-    Z = np.array([_z(rvs[i].values, config) for i in keep]) / size
+    Z = np.array([_z(rvs[i].values, config, rvs[i].regime) for i in keep]) / size
     try:
         X = np.array([[feats[i].get(k) for k in inputs] for i in keep])
     except KeyError as exc:
@@ -578,8 +691,8 @@ def identify_fault_hypothesis(models: ReferenceModelSet, config: SymptomConfig,
         m.fit(X, Z[:, j], input_names=tuple(inputs), output_name=f"g_{name}")
         directions[name] = m
     return FaultHypothesisResidualModel(models=models, config=config, fault=fault,
-                                        directions=directions,
-                                        model_id=model_id or fault, window=window)
+                                        directions=directions, model_id=model_id or fault,
+                                        window=window, regimes=regimes)
 
 
 def _register() -> None:
@@ -615,7 +728,8 @@ def _register() -> None:
             model_id=model_id,
             window=int(spec.get("window", meta.get("window", DEFAULT_WINDOW))),
             penalty=float(spec.get("penalty", meta.get("penalty", DEFAULT_PENALTY))),
-            min_effect=float(spec.get("min_effect", meta.get("min_effect", 1.0))))
+            min_effect=float(spec.get("min_effect", meta.get("min_effect", 1.0))),
+            regimes=meta.get("regimes"))
 
 
 _register()
@@ -634,7 +748,7 @@ def stream_residuals(models: ReferenceModelSet, features: Sequence[FeatureVector
         if k in FEATURES or any(k in fv.names for fv in feats):
             cols[k] = np.array([fv.values[fv.names.index(k)] if k in fv.names else np.nan
                                 for fv in feats], dtype=float)
-    R, ok = parity_residuals(models, cols)
+    R, ok, regimes = parity(models, cols)
     why = region_status(models, cols, ok) if not ok.all() else [""] * len(feats)
     qs = QuasiStationarity(config)
     out = []
@@ -649,7 +763,8 @@ def stream_residuals(models: ReferenceModelSet, features: Sequence[FeatureVector
             status = why[i] or "residuals not finite"
         else:
             status = ""
-        out.append(_finish(fv, *qs.apply(fv, R[i], valid, status), config, model_id))
+        out.append(_finish(fv, *qs.apply(fv, R[i], valid, status, str(regimes[i])), config,
+                           model_id))
     return out
 
 
@@ -660,46 +775,111 @@ def run_symptoms(models: ReferenceModelSet, config: SymptomConfig,
     return [gen.update(rv) for rv in stream_residuals(models, features, config=config)]
 
 
-def calibrate_from_fault_free(models: ReferenceModelSet, features: Sequence[FeatureVector], *,
-                              settle_s: float = 1.0, max_speed_change: float = 50.0,
-                              max_fuel_change: float = 1.0,
-                              rate_lag: int = 2, storage_correction: bool = True,
-                              **kw) -> SymptomConfig:
-    """Thresholds from fault-free (transient) feature vectors.
+# With transients diagnosed as a regime of their own: the boost temperature still moving faster
+# than the identification allowed (reference.TEMPERATURE_SETTLED) makes a segment transient
+# too; and only a large move of an actuator command (the EGR valve opening or closing, the
+# flaps switching) within ACTUATOR_SETTLE_S, since the regimes' maps take the EGR command as
+# an input and undo the T2 sensor's lag.
+TEMPERATURE_SETTLING = {"T2_rate": TEMPERATURE_SETTLED}
+# ... and beyond this rate [K/s] (the moment an EGR valve closed at full load: the sensor still
+# reads the hot recirculated gas, 100 K and more above the charge) not valid at all
+TEMPERATURE_TOO_FAST = {"T2_rate": 3.0 * TEMPERATURE_SETTLED}
+REGIME_ACTUATOR_MOVE = 0.2
+# Margin of the thresholds of the regimes beyond the base one on their largest fault-free
+# excursion (the base regime's 1.25): their six-input maps rest on the identification passes
+# alone and the drives they see lie between those passes' trajectories.
+FURTHER_REGIME_MARGIN = 2.0
 
-    1. ``storage_coeff`` by least squares of the static r_eta on ``-(dp2/dt)/(n p2)`` over all
-       in-region segments (the transients give the leverage);
+
+def _unit_config(models: ReferenceModelSet, **settings: Any) -> SymptomConfig:
+    """Centre 0 and threshold 1 for every regime the model set can produce (the raw residuals
+    pass unchanged: for calibration)."""
+    ones: tuple[float, ...] = (1.0,) * len(RESIDUALS)
+    unit = {"centre": (0.0,) * len(RESIDUALS), "threshold": ones, "scale": ones}
+    names = [ms.regime for ms in models.regime_sets()]
+    regimes = dict.fromkeys(names + [r + TRANSIENT_SUFFIX for r in names], unit)
+    return SymptomConfig(centre=unit["centre"], threshold=ones, scale=ones, names=RESIDUALS,
+                         regimes={r: v for r, v in regimes.items() if r != models.regime},
+                         base_regime=models.regime, **settings)
+
+
+def calibrate_from_fault_free(models: ReferenceModelSet,
+                              features: Sequence[FeatureVector]
+                              | Sequence[Sequence[FeatureVector]], **kw: Any) -> SymptomConfig:
+    """Thresholds from fault-free (transient) feature vectors: one stream, or several
+    (e.g. drives with the EGR valve closed and as the ECU runs it), each gated on its own.
+
+    1. ``storage_coeff``: the one identified with the static maps (``models.info``), else by
+       least squares of the static r_eta on ``-(dp2/dt)/(n p2)`` over all in-region segments
+       (the transients give the leverage);
     2. residuals corrected and gated with the rate limits;
-    3. :func:`calibrate_thresholds` on the quasi-stationary segments.
+    3. :func:`calibrate_thresholds` per operating regime: the quasi-stationary segments of
+       each regime, and with ``transients="regime"`` its transient segments as a regime of
+       their own.
     """
-    feats = list(features)
-    probe = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(1.0,) * 5,
-                          names=RESIDUALS,
-                          rate_lag=rate_lag)
-    rvs = stream_residuals(models, feats, config=probe)   # static, not gated
-    qs = QuasiStationarity(probe)
+    return calibrate_with_residuals(models, features, **kw)[0]
+
+
+def calibrate_with_residuals(models: ReferenceModelSet,
+                             features: Sequence[FeatureVector]
+                             | Sequence[Sequence[FeatureVector]], *,
+                             settle_s: float = 1.0, max_speed_change: float = 50.0,
+                             max_fuel_change: float = 1.0,
+                             rate_lag: int = 2, storage_correction: bool = True,
+                             transients: str = "not_valid",
+                             **kw: Any) -> tuple[SymptomConfig, list[ResidualVector]]:
+    """:func:`calibrate_from_fault_free`, and the gated residual vectors it calibrated on
+    (those the returned configuration gives, but for the validity of a regime it has no
+    thresholds for: see :func:`valid_under`)."""
+    one = not len(features) or isinstance(features[0], FeatureVector)
+    streams: list[list[FeatureVector]] = [list(f) for f in (  # type: ignore[arg-type]
+        [features] if one else features)]
+    if transients == "regime":
+        kw.setdefault("max_rates", TEMPERATURE_SETTLING)
+        kw.setdefault("invalid_rates", TEMPERATURE_TOO_FAST)
+        kw.setdefault("actuator_move", REGIME_ACTUATOR_MOVE)
+    probe = _unit_config(models, rate_lag=rate_lag)
     x, r = [], []
-    for fv, rv in zip(feats, rvs):
-        dn, dp = qs.rates(fv)
-        if rv.valid and np.isfinite(dp):
-            x.append(-dp / (fv.get("n") * fv.get("p2")))
-            r.append(rv.values[0])
+    known = storage_correction and "storage_coeff" in models.info
+    for feats in ([] if known else streams):
+        rvs = stream_residuals(models, feats, config=probe)   # static, not gated
+        qs = QuasiStationarity(probe)
+        for fv, rv in zip(feats, rvs):
+            dn, dp = qs.rates(fv)
+            if rv.valid and np.isfinite(dp) and rv.regime == models.regime:
+                x.append(-dp / (fv.get("n") * fv.get("p2")))
+                r.append(rv.values[0])
     coeff = 0.0
-    if storage_correction and "storage_coeff" in models.info:
+    if known:
         coeff = float(models.info["storage_coeff"])   # identified with the static maps
     elif storage_correction and len(x) > 20:
         xa, ra = np.asarray(x), np.asarray(r)
         ra = ra - np.median(ra)
         den = float(xa @ xa)
         coeff = float(xa @ ra / den) if den > 0 else 0.0
-    gate = SymptomConfig(centre=(0.0,) * 5, threshold=(1.0,) * 5, scale=(1.0,) * 5,
-                         names=RESIDUALS,
-                         rate_lag=rate_lag, storage_coeff=coeff,
-                         settle_s=settle_s, max_speed_change=max_speed_change,
-                         max_fuel_change=max_fuel_change)
-    rvs = stream_residuals(models, feats, config=gate)
+    gate = _unit_config(models, rate_lag=rate_lag, storage_coeff=coeff, settle_s=settle_s,
+                        max_speed_change=max_speed_change, max_fuel_change=max_fuel_change,
+                        transients=transients, max_rates=kw.get("max_rates", {}),
+                        invalid_rates=kw.get("invalid_rates", {}),
+                        actuator_move=kw.get("actuator_move"))
+    rvs = [rv for feats in streams for rv in stream_residuals(models, feats, config=gate)]
     R = np.array([rv.values for rv in rvs])
-    valid = np.array([rv.valid for rv in rvs])
-    return calibrate_thresholds(R, valid, storage_coeff=coeff, settle_s=settle_s,
-                                max_speed_change=max_speed_change,
-                                max_fuel_change=max_fuel_change, rate_lag=rate_lag, **kw)
+    # Transients are diagnosed in the base regime only: elsewhere the maps rest on the
+    # identification passes alone (their transients stay "not valid here", no thresholds).
+    valid = np.array([rv.valid and (not rv.regime.endswith(TRANSIENT_SUFFIX) or
+                                    rv.regime == models.regime + TRANSIENT_SUFFIX)
+                      for rv in rvs])
+    kw.setdefault("margins", {ms.regime: FURTHER_REGIME_MARGIN for ms in models.regimes})
+    cfg = calibrate_thresholds(R, valid, storage_coeff=coeff, settle_s=settle_s,
+                               max_speed_change=max_speed_change,
+                               max_fuel_change=max_fuel_change, rate_lag=rate_lag,
+                               regimes=[rv.regime for rv in rvs], base_regime=models.regime,
+                               transients=transients, **kw)
+    return cfg, rvs
+
+
+def valid_under(cfg: SymptomConfig, rvs: Sequence[ResidualVector]) -> int:
+    """How many of the gated residual vectors ``rvs`` (of :func:`calibrate_with_residuals`)
+    are valid diagnoses under ``cfg``: valid and of a regime it has thresholds for (the gate
+    is the same, so this is what :func:`stream_residuals` with ``cfg`` would count)."""
+    return sum(1 for rv in rvs if rv.valid and cfg.knows(rv.regime))

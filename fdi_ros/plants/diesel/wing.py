@@ -173,10 +173,12 @@ def _reference_current(d: Path) -> bool:
     if not all((d / f).exists() for f in REFERENCE_FILES):
         return False
     try:
-        validity = json.loads((d / REFERENCE_FILES[0]).read_text()).get("validity")
+        manifest = json.loads((d / REFERENCE_FILES[0]).read_text())
     except ValueError:
         return False
-    if not validity:
+    validity = manifest.get("validity")
+    # identified in operating regimes (sets from before the regimes are rebuilt)
+    if not validity or not manifest.get("info", {}).get("regime"):
         return False
     tol = {r.get("name"): r.get("tol") for r in validity.get("ranges", [])}
     return all(tol.get(k, v) == v for k, v in ACTUATOR_TOL.items())
@@ -211,15 +213,16 @@ def build_bank(cfg: GraphConfig, *, progress: bool = True, seed: int = 0,
         return []
     from fdi_ros.core.parallel import process_pool
     from fdi_ros.plants.diesel.identify import (
-        DEFAULT_DRIVE,
-        DEFAULT_IDENT,
+        REFERENCE_SOURCES,
         THRESHOLD_SEED,
-        build_models,
+        THRESHOLD_SOURCES,
+        build_reference_models,
     )
 
     t0 = time.perf_counter()
     built = []
-    ident, drive = str(cfg.resolve(DEFAULT_IDENT)), str(cfg.resolve(DEFAULT_DRIVE))
+    ident = [str(cfg.resolve(s)) for s in REFERENCE_SOURCES]
+    drives = [str(cfg.resolve(s)) for s in THRESHOLD_SOURCES]
     refs = [s for s in todo if s[1]["type"] == "diesel_reference"]
     jobs = []
     for i, (mid, spec) in enumerate(s for s in todo if s[1]["type"] != "diesel_reference"):
@@ -227,18 +230,20 @@ def build_bank(cfg: GraphConfig, *, progress: bool = True, seed: int = 0,
         fault, size = hypothesis_fault(next(iter(cfg.entry(mid).faults)), spec)
         log(f"[bank] identifying fault hypothesis {mid!r} ({fault} {size:g} "
             f"{FAULT_UNITS[fault]}) -> {spec['hypothesis']}")
-        jobs.append((ident, mid, spec, fault, size, seed + 500 + i))
+        jobs.append((ident[0], mid, spec, fault, size, seed + 500 + i))
     with process_pool() as pool:
         # the reference's data first (cached in build/), then the hypotheses' simulations
-        ref_data = [pool.submit(_simulate_reference, (ident, seed)),
-                    pool.submit(_simulate_reference, (drive, THRESHOLD_SEED))] if refs else []
+        ref_data = [pool.submit(_simulate_reference, job) for job in
+                    [(s, seed + i) for i, s in enumerate(ident)]
+                    + [(d, THRESHOLD_SEED + i) for i, d in enumerate(drives)]
+                    ] if refs else []
         sims = [pool.submit(_simulate_hypothesis, job) for job in jobs]
         for f in ref_data:
             f.result()
         for mid, spec in refs:
             log(f"[bank] identifying the reference models {mid!r} -> {spec['path']}")
-            build_models(ident, out=spec["path"], seed=seed, fault_free=drive,
-                         threshold_seed=THRESHOLD_SEED, progress=progress)
+            build_reference_models(spec["path"], seed=seed, progress=progress, log=log,
+                                   resolve=cfg.resolve)
             built.append(mid)
             log(f"[bank] {mid}: {time.perf_counter() - t0:.1f} s")
         fits = [pool.submit(_fit_hypothesis, (job, f.result())) for job, f in zip(jobs, sims)]

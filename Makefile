@@ -14,15 +14,11 @@ setup:
 demo: setup
 	$(VENV)/bin/fdi-ros demo --out out/demo
 
-# Two pytest-xdist workers: the multi-process graph tests on one, one after the other, every
-# other module on the other (tests/conftest.py groups them); `pytest tests` runs them serially.
-XDIST := -n 2 --dist loadgroup --no-loadscope-reorder
-
 test: setup
-	$(VENV)/bin/python -m pytest tests $(XDIST)
+	$(VENV)/bin/python -m pytest tests
 
 test-fast: setup
-	$(VENV)/bin/python -m pytest tests $(XDIST) -m "not graph and not slow"
+	$(VENV)/bin/python -m pytest tests -m "not graph and not slow"
 
 bench: setup
 	$(VENV)/bin/fdi-ros bench all --json

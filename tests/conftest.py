@@ -15,11 +15,6 @@ import os
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
-# pytest-xdist (`make test` runs two workers): each worker a domain of its own, so that the
-# graphs two workers start at the same time never meet (topic names are the same)
-if os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw").isdigit():
-    _worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw"))
-    os.environ["ROS_DOMAIN_ID"] = str((int(os.environ["ROS_DOMAIN_ID"]) + 101 * _worker) % 232)
 os.environ.setdefault("MPLBACKEND", "Agg")
 # The supervisor's fault memory and snapshot bags: a directory of this session's own, so tests
 # never leave state in the checkout nor see faults a previous run confirmed.
@@ -41,14 +36,6 @@ _BUILD = "import sys; from fdi_ros.plants import ensure_bank\n" \
 _background: list[subprocess.Popen] = []
 
 
-def pytest_itemcollected(item):
-    """With ``--dist loadgroup`` (``make test``): the multi-process graph tests all on one
-    worker, one after the other (two graphs at once would starve each other on 2 cores), every
-    other module on one worker as a whole (its module fixtures set up once)."""
-    group = "graph" if item.get_closest_marker("graph") else item.nodeid.split("::")[0]
-    item.add_marker(pytest.mark.xdist_group(group))
-
-
 @pytest.hookimpl(trylast=True)  # after the deselection by -m / -k
 def pytest_collection_modifyitems(session, config, items):
     """Modules that need no bank first (kept whole: module fixtures are set up once), and the
@@ -57,14 +44,10 @@ def pytest_collection_modifyitems(session, config, items):
     for it in items:
         needs.setdefault(it.module.__name__, [])
         needs[it.module.__name__] += [BANKS[f] for f in it.fixturenames if f in BANKS]
-    # under xdist the graph tests' worker starts with them (the longest group: its first
-    # tests need no bank), the other worker runs the rest meanwhile
-    workers = "PYTEST_XDIST_WORKER" in os.environ
-    items.sort(key=lambda it: (workers and not it.get_closest_marker("graph"),
-                               bool(needs[it.module.__name__])))
+    items.sort(key=lambda it: bool(needs[it.module.__name__]))
     order = list(dict.fromkeys(c for it in items for c in needs[it.module.__name__]))
     if order and not config.getoption("collectonly"):
-        log = (ROOT / "build" / f"bank_background{os.environ.get('PYTEST_XDIST_WORKER', '')}.log")
+        log = (ROOT / "build" / "bank_background.log")
         log.parent.mkdir(parents=True, exist_ok=True)
         with log.open("w") as fh:
             _background.append(subprocess.Popen([sys.executable, "-c", _BUILD, *order],
@@ -78,7 +61,7 @@ def pytest_sessionfinish(session, exitstatus):
             proc.wait(30)
         elif proc.returncode:
             print(f"\nbackground bank identification failed (rc {proc.returncode}); its log: "
-                  f"{ROOT / 'build'}/bank_background*.log", file=sys.stderr)
+                  f"{ROOT / 'build' / 'bank_background.log'}", file=sys.stderr)
 
 
 def _bank(fixture: str) -> Path:

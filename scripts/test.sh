@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# `make test`: the multi-process graph tests and all the others as two pytest sessions at
+# once (2 cores: the graph tests wait on DDS and on plant time, the others compute), each in a
+# ROS domain of its own. The graph session identifies the model banks in the background and
+# runs at normal priority; the other, niced, takes the CPU the graphs leave and its bank
+# fixtures wait for the banks. Extra arguments go to both sessions. Exit status: non-zero if
+# either session failed; the graph session's output follows the other's.
+set -uo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+PY="$ROOT/.venv/bin/python"
+base="${ROS_DOMAIN_ID:-$(( ($$ % 100) + 100 ))}"
+mkdir -p "$ROOT/build"
+log="$ROOT/build/test-graph.log"
+cd "$ROOT"
+ROS_DOMAIN_ID=$(( (base + 101) % 232 )) "$PY" -m pytest tests -m graph "$@" > "$log" 2>&1 &
+graph=$!
+trap 'kill -INT $graph 2>/dev/null; wait $graph' INT TERM
+ROS_DOMAIN_ID=$base FDI_ROS_TEST_BANK_BUILDER=0 nice -n 10 "$PY" -m pytest tests -m "not graph" "$@"
+rest=$?
+wait $graph
+rc=$?
+echo "================================ graph tests ($log)"
+cat "$log"
+echo "[test] other tests: exit $rest; graph tests: exit $rc"
+[ "$rest" -eq 0 ] && [ "$rc" -eq 0 ]

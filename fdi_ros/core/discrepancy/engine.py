@@ -370,15 +370,22 @@ def _time_varying(eff: Effect) -> bool:
     return eff.id == "drift" or bool(getattr(eff, "piecewise", False))
 
 
-def _verdict(findings: list[Finding], table: list[Candidate]) -> tuple[str, str]:
-    """Verdict and one-line message from the findings and the candidate table."""
+def _verdict(findings: list[Finding], table: list[Candidate], alpha: float = 0.05
+             ) -> tuple[str, str]:
+    """Verdict and one-line message from the findings and the candidate table (``alpha``: the
+    significance level, to tell a candidate dropped as too small from an inconsistent one)."""
     if findings:
         top = findings[0]
         return "discrepant", (f"{len(findings)} significant finding(s); top: {top.label} on "
                               f"{top.channel} (held-out RMSE -{top.gain_pct:.1f}%)")
     msg = ("no extension improves the held-out error significantly: the model is consistent "
            "with the data")
-    if table and table[0].gain_pct >= 10.0:
+    if table and table[0].gain_pct >= 10.0 and table[0].p_adjusted < alpha:
+        c = table[0]
+        msg += (f" (the best candidate, {c.label} on {c.channel}, gains {c.gain_pct:.0f} % "
+                f"held-out, p_adj {c.p_adjusted:.2g}, but moves the reading less than the "
+                "relevance floor: real, but too small to matter)")
+    elif table and table[0].gain_pct >= 10.0:
         c = table[0]
         msg += (f" (the best candidate, {c.label} on {c.channel}, gains {c.gain_pct:.0f} % "
                 f"but not consistently over the held-out blocks, p_adj {c.p_adjusted:.2g}: "
@@ -503,17 +510,41 @@ def carrier(eff: Effect, channel: str) -> str:
     return str(getattr(eff, "sensor", "") or channel)
 
 
+# A significant explanation that achieves all but this share of the named one's held-out
+# RMSE gain is reported as a tie: what remains after either is the model's own error, and a
+# difference of a few percent of the gain is no evidence for one cause over the other.
+PRACTICAL_TIE = 0.05
+
+
 def _alternatives(c: _Channel, chain: list[Effect], scored: list[tuple[Candidate, np.ndarray]],
                   choice: Candidate, by_label: dict[str, Effect], alpha: float = 0.05,
                   max_ties: int = 8) -> list[dict[str, Any]]:
     """Other explanations the held-out data cannot tell apart from the choice, with their own
     parameters fitted on every valid sample: within one standard error of it, or significant
     themselves and not significantly worse than it (one-sided Wilcoxon over the blocks, level
-    ``alpha``). One per effect and carrier (its best variant), best first."""
+    ``alpha``), one per effect and carrier (its best variant), best first; then those that
+    are significant and achieve at least 1 - :data:`PRACTICAL_TIE` of the choice's held-out
+    gain (its simplest such variant): a difference that small, however significant with
+    little noise, does not say which explanation is true."""
     alternatives: list[dict[str, Any]] = []
     full_pred = None
     seen = {(choice.effect, choice.channel)}
-    for cand, _ in sorted(scored, key=lambda ca: float(np.nanmean(ca[0].mse_blocks))):
+    ranked = [cand for cand, _ in sorted(scored,
+                                         key=lambda ca: float(np.nanmean(ca[0].mse_blocks)))]
+
+    def add(cand: Candidate) -> None:
+        nonlocal full_pred
+        if full_pred is None:
+            full_pred, _ = fit_chain(c.ctx, chain, c.ok)
+        alt = by_label[cand.label]
+        alt_d = {"effect": cand.effect, "label": cand.label, "channel": cand.channel,
+                 "gain_pct": cand.gain_pct, "p_adjusted": cand.p_adjusted,
+                 "params": alt.fit(c.ctx, full_pred, c.ok, refine=True)}
+        alt_d.update(tie_reason(choice, cand, c.name))
+        alternatives.append(alt_d)
+        seen.add((cand.effect, cand.channel))
+
+    for cand in ranked:
         if (cand.effect, cand.channel) in seen:
             continue  # one alternative per effect and channel: its best variant
         d = cand.mse_blocks - choice.mse_blocks
@@ -523,15 +554,13 @@ def _alternatives(c: _Channel, chain: list[Effect], scored: list[tuple[Candidate
         if d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size) or (
                 cand.p_adjusted < alpha
                 and paired_p(cand.mse_blocks, choice.mse_blocks) >= alpha):
-            if full_pred is None:
-                full_pred, _ = fit_chain(c.ctx, chain, c.ok)
-            alt = by_label[cand.label]
-            alt_d = {"effect": cand.effect, "label": cand.label, "channel": cand.channel,
-                     "gain_pct": cand.gain_pct, "p_adjusted": cand.p_adjusted,
-                     "params": alt.fit(c.ctx, full_pred, c.ok, refine=True)}
-            alt_d.update(tie_reason(choice, cand, c.name))
-            alternatives.append(alt_d)
-            seen.add((cand.effect, cand.channel))
+            add(cand)
+    close = [cand for cand in ranked if (cand.effect, cand.channel) not in seen
+             and cand.p_adjusted < alpha
+             and cand.gain_pct >= (1.0 - PRACTICAL_TIE) * choice.gain_pct]
+    for cand in sorted(close, key=lambda k: (k.n_params, float(np.nanmean(k.mse_blocks)))):
+        if (cand.effect, cand.channel) not in seen and len(alternatives) < max_ties:
+            add(cand)
     return alternatives
 
 
@@ -597,6 +626,11 @@ def _grow_chain(c: _Channel, cfg: DiscrepancyConfig, n_channels: int,
 
 MIN_GAIN_EFFECT = 0.01  # relevance floor of a gain error: |gain - 1| [1]
 MIN_EFFECT_REL = 0.01  # relevance floor of any effect: its error / RMS of the reading
+# ... and of an input sensor's error, also what it moves the channel's prediction by / RMS of
+# the channel: a quarter of the channel's accuracy class (measured: a T2 lag fitted to the
+# model's own transient error on fault-free data moves the flow prediction by 0.08 %; the
+# smallest p2 dead time stated detectable, 0.3 s, by 0.9 %)
+MIN_PROPAGATED_REL = 0.0025
 
 
 def _gain_magnitude(params: dict[str, Any]) -> float:
@@ -605,6 +639,15 @@ def _gain_magnitude(params: dict[str, Any]) -> float:
     if "gain" in params:
         vals.append(abs(float(params["gain"]) - 1.0))
     return max(vals, default=0.0)
+
+
+def _effect_size(eff: Effect, err: np.ndarray, ref: float) -> float:
+    """The error an effect puts on a signal relative to ``ref``: a drift by what it
+    accumulates (its largest value), any other effect by its RMS."""
+    if not err.size or ref <= 0:
+        return 0.0
+    mag = float(np.max(np.abs(err)) if eff.id == "drift" else np.sqrt(np.mean(err ** 2)))
+    return mag / ref
 
 
 def _refit(c: _Channel, chain: list[Effect], findings: list[Finding], info: dict[str, Any]
@@ -626,28 +669,30 @@ def _refit(c: _Channel, chain: list[Effect], findings: list[Finding], info: dict
     # Any other effect is held to the same floor by its size: the error it puts on a reading
     # (the channel's, or an input sensor's) must reach MIN_EFFECT_REL of that reading's RMS
     # (a sensor's accuracy class, 1 % of reading) in RMS over the record, a drift by what it
-    # accumulates, an input sensor's lag or dead time against how much the reading moves;
+    # accumulates, an input sensor's lag or dead time against how much the reading moves,
+    # and an input sensor's error also by how much it moves the channel's prediction;
     # smaller effects are real but negligible wanders of the model.
     level = float(np.sqrt(np.mean(ctx.y[c.ok] ** 2)))
     pred, size = ctx.yhat, []
     for eff, p in fitted:
         nxt = eff.apply(ctx, pred, p)
+        moved = (nxt - pred)[c.ok]
+        moved = moved[np.isfinite(moved)]
+        rel = _effect_size(eff, moved, level)
         if isinstance(eff, SensorError):
             e, x = eff.error(ctx, p), ctx.sensor_reading(eff.sensor)
             ok = c.ok & np.isfinite(e) & np.isfinite(x)
             # a lag or dead time errs only while the reading moves: judged against how much
-            # it moves (its standard deviation), the other errors against the reading
+            # it moves (its standard deviation), the other errors against the reading; and
+            # an input sensor's error must also move the channel's prediction by
+            # MIN_PROPAGATED_REL (a T2 lag of 0.3 s while T2 wanders by 2 K changes the
+            # predicted flow by less than 0.1 %: real or not, no deficiency worth naming)
             timing = eff.kind in ("sensor_lag", "dead_time")
             ref = (float(np.std(x[ok]) if timing else np.sqrt(np.mean(x[ok] ** 2)))
                    if ok.any() else 0.0)
-            e = e[ok]
-        else:
-            e, ref = (nxt - pred)[c.ok], level
-            e = e[np.isfinite(e)]
-        mag = 0.0
-        if e.size:
-            mag = float(np.max(np.abs(e)) if eff.id == "drift" else np.sqrt(np.mean(e ** 2)))
-        size.append(mag / ref if ref > 0 else 0.0)
+            rel = min(_effect_size(eff, e[ok], ref),
+                      rel * MIN_EFFECT_REL / MIN_PROPAGATED_REL)
+        size.append(rel)
         pred = nxt
     findings[:] = [f for f in findings
                    if not (f.model_channel == c.name
@@ -660,12 +705,13 @@ def _refit(c: _Channel, chain: list[Effect], findings: list[Finding], info: dict
 
 
 def _conclude(findings: list[Finding], table: list[Candidate],
-              summary: dict[str, dict[str, Any]]) -> tuple[list[Finding], str, str, bool]:
+              summary: dict[str, dict[str, Any]], alpha: float = 0.05
+              ) -> tuple[list[Finding], str, str, bool]:
     """Findings ranked, the verdict and its message, and whether any channel was analysed."""
     findings.sort(key=lambda f: -f.gain_pct)
     findings = [Finding(**{**f.__dict__, "rank": i + 1}) for i, f in enumerate(findings)]
     table.sort(key=lambda c: -c.gain_pct)
-    verdict, msg = _verdict(findings, table)
+    verdict, msg = _verdict(findings, table, alpha)
     skipped = {ch: c["status"] for ch, c in summary.items() if "status" in c}
     success = len(skipped) < len(summary)
     if not success:
@@ -724,7 +770,7 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
             del oof[ch]  # no step taken (max_findings = 0)
         nit += steps
         chains[ch] = _refit(c, chain, findings, info)
-    findings, verdict, msg, success = _conclude(findings, table, summary)
+    findings, verdict, msg, success = _conclude(findings, table, summary, cfg.alpha)
     return DiscrepancyResult(findings=findings, candidates=table, verdict=verdict, message=msg,
                              success=success, channels=summary, chains=chains,
                              n_blocks=max([c.get("n_blocks", 0) for c in summary.values()]
@@ -749,7 +795,7 @@ def merge_results(a: DiscrepancyResult, b: DiscrepancyResult, *, b_suffix: str,
     else:
         channels.update({f"{ch} (crank-resolved)": v for ch, v in a.channels.items()})
     cands = sorted(a.candidates + b.candidates, key=lambda c: -c.gain_pct)
-    verdict, msg = _verdict(findings, cands)
+    verdict, msg = _verdict(findings, cands, a.config.alpha)
     if not (a.success and b.success):
         verdict = "invalid"
         msg = "; ".join(r.message for r in (a, b) if not r.success)

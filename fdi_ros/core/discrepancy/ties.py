@@ -171,6 +171,12 @@ def tie_reason(choice: Any, other: Any, model_channel: str) -> dict[str, str]:
                "wrong (held-out error within one standard error)")
         sep = (f"a second relation that uses {a} but not {b}, or {b} but not {a} (a redundant "
                f"sensor, or a model of another component that reads one of them)")
+    elif {choice.effect, other.effect} == {"gain_error", "offset"}:
+        why = (f"on {a} a gain and an offset differ by (gain - 1) times the reading's "
+               "departure from its mean: over the narrow range the reading covered here the "
+               "two fit alike (held-out error within a few percent)")
+        sep = (f"readings of {a} over a wider range (a gain error grows with the reading, an "
+               "offset does not)")
     elif lag_pair:
         why = (f"on {a} a first-order lag tau and a dead time d = tau both make a slowly "
                "varying reading trail the truth by about tau dx/dt; they differ only in "

@@ -6,6 +6,10 @@
 # fixtures wait for the banks. Extra arguments go to both sessions. Exit status: non-zero if
 # either session failed; the graph session's output follows the other's.
 set -uo pipefail
+# one BLAS thread per process: two sessions and the graphs' node processes share 2 cores, and
+# OpenBLAS's spinning worker threads would slow a niced session 2-10 x (measured: a 7 s test
+# took 107 s beside the graph session)
+export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}" OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 PY="$ROOT/.venv/bin/python"
 base="${ROS_DOMAIN_ID:-$(( ($$ % 100) + 100 ))}"

@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable, Sequence
@@ -14,6 +15,10 @@ from typing import Any
 
 # After a stop signal, keep executing callbacks this long for data already delivered.
 DRAIN_S = 0.3
+# After a stop signal, a process still alive this much later (a teardown stuck in the
+# middleware) prints every thread's stack and exits: 0 if the nodes' shutdown hooks (a
+# recorder closing its bag) had run, 3 if not. The launcher waits 15 s before SIGKILL.
+STOP_GRACE_S = 10.0
 
 
 def ensure_loopback_env() -> None:
@@ -77,7 +82,28 @@ def run_nodes(make_nodes: Callable[[], Sequence[Any]], *, executor: str = "singl
     nodes: list[Any] = []
     stopping = {"flag": False}
 
+    hooks_done = {"flag": False, "running": False}
+
+    def _give_up() -> None:
+        import faulthandler
+
+        if hooks_done["running"] and not hooks_done["flag"]:
+            _arm()  # a shutdown hook at work (a recorder closing a large bag): let it finish
+            return
+
+        print(f"[fdi_ros] still not shut down {STOP_GRACE_S:.0f} s after the stop signal; "
+              "thread stacks follow, exiting", file=sys.stderr, flush=True)
+        faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+        os._exit(0 if hooks_done["flag"] else 3)
+
+    def _arm() -> None:
+        timer = threading.Timer(STOP_GRACE_S, _give_up)
+        timer.daemon = True
+        timer.start()
+
     def _stop(signum: int, frame: Any) -> None:
+        if not stopping["flag"]:
+            _arm()
         stopping["flag"] = True
 
     signal.signal(signal.SIGTERM, _stop)
@@ -99,6 +125,7 @@ def run_nodes(make_nodes: Callable[[], Sequence[Any]], *, executor: str = "singl
         traceback.print_exc()
         code = 1
     finally:
+        hooks_done["running"] = True
         for node in nodes:
             if on_shutdown is not None:
                 try:
@@ -106,6 +133,8 @@ def run_nodes(make_nodes: Callable[[], Sequence[Any]], *, executor: str = "singl
                 except Exception:
                     traceback.print_exc()
                     code = 1
+        hooks_done["flag"] = True
+        for node in nodes:
             try:
                 node.destroy_node()
             except Exception:

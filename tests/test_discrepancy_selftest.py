@@ -22,6 +22,10 @@ from fdi_ros.plants.diesel.discrepancy_selftest import (
 )
 
 
+# the heaviest bank-free module: make test runs it in the graph session, to even out the two
+pytestmark = pytest.mark.beside_graphs
+
+
 @pytest.fixture(scope="module")
 def baseline():
     return sc.diesel_baseline(seed=1000, runs=3, duration_s=90.0)

@@ -21,9 +21,6 @@ from fdi_ros.plants.diesel.discrepancy_selftest import (
     summarise,
 )
 
-# the heaviest bank-free module: make test runs it in the graph session, to even out the two
-pytestmark = pytest.mark.beside_graphs
-
 
 @pytest.fixture(scope="module")
 def baseline():

@@ -22,8 +22,10 @@ REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "liu_ice"
 MAPPING = REPO / "config" / "mappings" / "liu_ice.yaml"
 
-pytestmark = pytest.mark.skipif(not DATA.is_dir(),
-                                reason=f"LiU-ICE data directory {DATA} is absent")
+pytestmark = [pytest.mark.skipif(not DATA.is_dir(),
+                                 reason=f"LiU-ICE data directory {DATA} is absent"),
+              # CPU-bound and bank-free: make test runs it after the graphs, in their session
+              pytest.mark.beside_graphs]
 
 
 @pytest.fixture(scope="module")

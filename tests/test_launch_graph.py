@@ -58,8 +58,10 @@ def test_replay_ends_by_itself_with_the_offline_isolation(demo_bag, tmp_path, ra
     before = _own_temp_dirs()
     out = tmp_path / "live.json"
     t0 = time.monotonic()
+    # the bank's seven model nodes in two model-host processes (the CLI's hosting flags; the
+    # other launches here run one process per node)
     r = _fdi("launch", "config/diesel.yaml", "--replay", str(bag), "--rate", str(rate),
-             "--json", str(out), timeout=180)
+             "--hosting", "container", "--containers", "2", "--json", str(out), timeout=180)
     wall = time.monotonic() - t0
     print(f"rate {rate}: launcher exited {r.returncode} after {wall:.1f} s wall")
     assert r.returncode == 0, r.stderr[-3000:]

@@ -58,8 +58,8 @@ def test_replay_ends_by_itself_with_the_offline_isolation(demo_bag, tmp_path, ra
     before = _own_temp_dirs()
     out = tmp_path / "live.json"
     t0 = time.monotonic()
-    # the bank's seven model nodes in two model-host processes (the CLI's hosting flags; the
-    # other launches here run one process per node)
+    # the bank's seven model nodes in two model-host processes (the CLI's hosting flags, as in
+    # the respawn and recorder tests below; the scenario run keeps one process per node)
     r = _fdi("launch", "config/diesel.yaml", "--replay", str(bag), "--rate", str(rate),
              "--hosting", "container", "--containers", "2", "--json", str(out), timeout=180)
     wall = time.monotonic() - t0
@@ -110,7 +110,8 @@ def test_killed_supervisor_is_respawned_and_sigint_stops_a_background_launcher(d
     # a background job of a non-interactive shell: SIGINT inherited as ignored
     sh = subprocess.Popen(
         ["bash", "-c", f"{' '.join(FDI)} launch config/diesel.yaml --replay {bag} "
-         "--rate 0.5 --respawn-limit 2 & echo $!; wait $!; echo rc=$?"],
+         "--rate 0.5 --respawn-limit 2 --hosting container --containers 2 "
+         "& echo $!; wait $!; echo rc=$?"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         launcher = int(sh.stdout.readline())
@@ -158,7 +159,8 @@ def test_sigkilled_recorder_stops_the_launcher_and_its_bag_recovers(demo_bag, tm
     rec = tmp_path / "rec"
     w = GraphWatcher()
     p = subprocess.Popen([*FDI, "launch", "config/diesel.yaml", "--replay", str(bag),
-                          "--rate", "1", "--record", str(rec)], cwd=ROOT,
+                          "--rate", "1", "--record", str(rec), "--hosting", "container",
+                          "--containers", "2"], cwd=ROOT,
                          stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         # killed mid-run, once a few 1 MiB chunks are on disk

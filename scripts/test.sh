@@ -2,11 +2,12 @@
 # `make test`: the multi-process graph tests and all the others as two pytest sessions at
 # once (2 cores: the graph tests wait on DDS and on plant time, the others compute), each in a
 # ROS domain of its own (the graph session also runs the modules marked beside_graphs, after
-# the graphs, so that both end about together). The graph session identifies the model banks in the background; the
-# other's bank fixtures wait for them. Both at the same priority: niced, the other session got
-# a tenth of a core beside a graph's node processes and finished three minutes after the graph
-# session, alone on one core. Extra arguments go to both sessions. Exit status: non-zero if
-# either session failed; the graph session's output follows the other's.
+# the graphs, so that both end about together). The graph session identifies the model banks
+# in the background; the other's bank fixtures wait for them. Both at the same priority:
+# niced, the other session got a tenth of a core beside a graph's node processes and finished
+# three minutes after the graph session, alone on one core. Extra arguments go to both
+# sessions. Exit status: non-zero if either session failed; the graph session's output follows
+# the other's.
 set -uo pipefail
 # one BLAS thread per process: two sessions and the graphs' node processes share 2 cores, and
 # OpenBLAS's spinning worker threads would take the CPU the other processes need

@@ -80,21 +80,19 @@ def run_nodes(make_nodes: Callable[[], Sequence[Any]], *, executor: str = "singl
     rclpy.init(args=args if args is not None else sys.argv,
                signal_handler_options=SignalHandlerOptions.NO)
     nodes: list[Any] = []
-    stopping = {"flag": False}
-
-    hooks_done = {"flag": False, "running": False}
+    # stopping: a stop signal came; hooks: the shutdown hooks are "running" or "done"
+    state = {"stopping": False, "hooks": ""}
 
     def _give_up() -> None:
         import faulthandler
 
-        if hooks_done["running"] and not hooks_done["flag"]:
+        if state["hooks"] == "running":
             _arm()  # a shutdown hook at work (a recorder closing a large bag): let it finish
             return
-
         print(f"[fdi_ros] still not shut down {STOP_GRACE_S:.0f} s after the stop signal; "
               "thread stacks follow, exiting", file=sys.stderr, flush=True)
         faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
-        os._exit(0 if hooks_done["flag"] else 3)
+        os._exit(0 if state["hooks"] == "done" else 3)
 
     def _arm() -> None:
         timer = threading.Timer(STOP_GRACE_S, _give_up)
@@ -102,9 +100,9 @@ def run_nodes(make_nodes: Callable[[], Sequence[Any]], *, executor: str = "singl
         timer.start()
 
     def _stop(signum: int, frame: Any) -> None:
-        if not stopping["flag"]:
+        if not state["stopping"]:
             _arm()
-        stopping["flag"] = True
+        state["stopping"] = True
 
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
@@ -114,7 +112,7 @@ def run_nodes(make_nodes: Callable[[], Sequence[Any]], *, executor: str = "singl
         ex = make_executor(executor, threads)
         for node in nodes:
             ex.add_node(node)
-        while not stopping["flag"] and rclpy.ok():
+        while not state["stopping"] and rclpy.ok():
             ex.spin_once(timeout_sec=0.1)
         deadline = time.monotonic() + DRAIN_S
         while rclpy.ok() and time.monotonic() < deadline:
@@ -125,7 +123,7 @@ def run_nodes(make_nodes: Callable[[], Sequence[Any]], *, executor: str = "singl
         traceback.print_exc()
         code = 1
     finally:
-        hooks_done["running"] = True
+        state["hooks"] = "running"
         for node in nodes:
             if on_shutdown is not None:
                 try:
@@ -133,7 +131,7 @@ def run_nodes(make_nodes: Callable[[], Sequence[Any]], *, executor: str = "singl
                 except Exception:
                     traceback.print_exc()
                     code = 1
-        hooks_done["flag"] = True
+        state["hooks"] = "done"
         for node in nodes:
             try:
                 node.destroy_node()

@@ -380,16 +380,13 @@ def _verdict(findings: list[Finding], table: list[Candidate], alpha: float = 0.0
                               f"{top.channel} (held-out RMSE -{top.gain_pct:.1f}%)")
     msg = ("no extension improves the held-out error significantly: the model is consistent "
            "with the data")
-    if table and table[0].gain_pct >= 10.0 and table[0].p_adjusted < alpha:
+    if table and table[0].gain_pct >= 10.0:
         c = table[0]
+        why = ("moves the reading less than the relevance floor: real, but too small to matter"
+               if c.p_adjusted < alpha else "not consistently over the held-out blocks: an "
+               "effect outside the catalogue, e.g. intermittent, is possible")
         msg += (f" (the best candidate, {c.label} on {c.channel}, gains {c.gain_pct:.0f} % "
-                f"held-out, p_adj {c.p_adjusted:.2g}, but moves the reading less than the "
-                "relevance floor: real, but too small to matter)")
-    elif table and table[0].gain_pct >= 10.0:
-        c = table[0]
-        msg += (f" (the best candidate, {c.label} on {c.channel}, gains {c.gain_pct:.0f} % "
-                f"but not consistently over the held-out blocks, p_adj {c.p_adjusted:.2g}: "
-                f"an effect outside the catalogue, e.g. intermittent, is possible)")
+                f"held-out, p_adj {c.p_adjusted:.2g}, but {why})")
     return "consistent", msg
 
 
@@ -532,7 +529,7 @@ def _alternatives(c: _Channel, chain: list[Effect], scored: list[tuple[Candidate
     ranked = [cand for cand, _ in sorted(scored,
                                          key=lambda ca: float(np.nanmean(ca[0].mse_blocks)))]
 
-    def add(cand: Candidate) -> None:
+    def add(cand: Candidate, basis: str) -> None:
         nonlocal full_pred
         if full_pred is None:
             full_pred, _ = fit_chain(c.ctx, chain, c.ok)
@@ -540,7 +537,7 @@ def _alternatives(c: _Channel, chain: list[Effect], scored: list[tuple[Candidate
         alt_d = {"effect": cand.effect, "label": cand.label, "channel": cand.channel,
                  "gain_pct": cand.gain_pct, "p_adjusted": cand.p_adjusted,
                  "params": alt.fit(c.ctx, full_pred, c.ok, refine=True)}
-        alt_d.update(tie_reason(choice, cand, c.name))
+        alt_d.update(tie_reason(choice, cand, c.name, basis))
         alternatives.append(alt_d)
         seen.add((cand.effect, cand.channel))
 
@@ -551,16 +548,18 @@ def _alternatives(c: _Channel, chain: list[Effect], scored: list[tuple[Candidate
         d = d[np.isfinite(d)]
         if d.size < 3 or len(alternatives) >= max_ties:
             continue
-        if d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size) or (
-                cand.p_adjusted < alpha
-                and paired_p(cand.mse_blocks, choice.mse_blocks) >= alpha):
-            add(cand)
-    close = [cand for cand in ranked if (cand.effect, cand.channel) not in seen
-             and cand.p_adjusted < alpha
+        if d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size):
+            add(cand, "held-out error within one standard error")
+        elif cand.p_adjusted < alpha and paired_p(cand.mse_blocks,
+                                                  choice.mse_blocks) >= alpha:
+            add(cand, "significant itself, and not significantly worse over the held-out "
+                      "blocks")
+    close = [cand for cand in ranked if cand.p_adjusted < alpha
              and cand.gain_pct >= (1.0 - PRACTICAL_TIE) * choice.gain_pct]
     for cand in sorted(close, key=lambda k: (k.n_params, float(np.nanmean(k.mse_blocks)))):
         if (cand.effect, cand.channel) not in seen and len(alternatives) < max_ties:
-            add(cand)
+            add(cand, f"held-out RMSE gain {cand.gain_pct:.1f} % against "
+                      f"{choice.gain_pct:.1f} %: within {PRACTICAL_TIE:.0%} of it")
     return alternatives
 
 
@@ -673,13 +672,14 @@ def _refit(c: _Channel, chain: list[Effect], findings: list[Finding], info: dict
     # and an input sensor's error also by how much it moves the channel's prediction;
     # smaller effects are real but negligible wanders of the model.
     level = float(np.sqrt(np.mean(ctx.y[c.ok] ** 2)))
-    pred, size = ctx.yhat, []
+    pred, small = ctx.yhat, []
     for eff, p in fitted:
         nxt = eff.apply(ctx, pred, p)
-        moved = (nxt - pred)[c.ok]
-        moved = moved[np.isfinite(moved)]
-        rel = _effect_size(eff, moved, level)
-        if isinstance(eff, SensorError):
+        shift = (nxt - pred)[c.ok]
+        moved = _effect_size(eff, shift[np.isfinite(shift)], level)
+        if not isinstance(eff, SensorError):
+            small.append(moved < MIN_EFFECT_REL)
+        else:
             e, x = eff.error(ctx, p), ctx.sensor_reading(eff.sensor)
             ok = c.ok & np.isfinite(e) & np.isfinite(x)
             # a lag or dead time errs only while the reading moves: judged against how much
@@ -690,15 +690,14 @@ def _refit(c: _Channel, chain: list[Effect], findings: list[Finding], info: dict
             timing = eff.kind in ("sensor_lag", "dead_time")
             ref = (float(np.std(x[ok]) if timing else np.sqrt(np.mean(x[ok] ** 2)))
                    if ok.any() else 0.0)
-            rel = min(_effect_size(eff, e[ok], ref),
-                      rel * MIN_EFFECT_REL / MIN_PROPAGATED_REL)
-        size.append(rel)
+            small.append(_effect_size(eff, e[ok], ref) < MIN_EFFECT_REL
+                         or moved < MIN_PROPAGATED_REL)
         pred = nxt
     findings[:] = [f for f in findings
                    if not (f.model_channel == c.name
                            and ((f.effect == "gain_error"
                                  and _gain_magnitude(f.params) < MIN_GAIN_EFFECT)
-                                or size[f.step - 1] < MIN_EFFECT_REL))]
+                                or small[f.step - 1]))]
     final = apply_chain(ctx, fitted)
     info["rmse_extended_in_sample"] = float(np.sqrt(np.mean((ctx.y - final)[c.ok] ** 2)))
     return fitted

@@ -157,10 +157,11 @@ def input_gain_ties(data: Measured, model: Any, channel: str, gain: float, onset
     return out
 
 
-def tie_reason(choice: Any, other: Any, model_channel: str) -> dict[str, str]:
+def tie_reason(choice: Any, other: Any, model_channel: str,
+               basis: str = "held-out error within one standard error") -> dict[str, str]:
     """Why two candidates (``choice``, ``other``: objects with ``effect``, ``label`` and
-    ``channel``) explain ``model_channel``'s residual alike, and which measurement would tell
-    them apart."""
+    ``channel``) explain ``model_channel``'s residual alike (``basis``: the criterion that
+    tied them), and which measurement would tell them apart."""
     a, b = choice.channel, other.channel
     lag_pair = {choice.effect, other.effect} == {"sensor_lag", "dead_time"}
     if a != b:
@@ -168,13 +169,13 @@ def tie_reason(choice: Any, other: Any, model_channel: str) -> dict[str, str]:
         why = (f"{other.label} ({b}) moves the {model_channel} residual as {choice.label} "
                f"({a}) does: the model predicts {model_channel} from "
                f"{' and '.join(sensors)}, and one residual cannot prove which signal is "
-               "wrong (held-out error within one standard error)")
+               f"wrong ({basis})")
         sep = (f"a second relation that uses {a} but not {b}, or {b} but not {a} (a redundant "
                f"sensor, or a model of another component that reads one of them)")
     elif {choice.effect, other.effect} == {"gain_error", "offset"}:
         why = (f"on {a} a gain and an offset differ by (gain - 1) times the reading's "
                "departure from its mean: over the narrow range the reading covered here the "
-               "two fit alike (held-out error within a few percent)")
+               f"two fit alike ({basis})")
         sep = (f"readings of {a} over a wider range (a gain error grows with the reading, an "
                "offset does not)")
     elif lag_pair:
@@ -184,8 +185,7 @@ def tie_reason(choice: Any, other: Any, model_channel: str) -> dict[str, str]:
         sep = (f"the crank-angle pulsation of {a} (a lag damps it, a dead time shifts its "
                "phase in proportion to speed) or steeper transients")
     else:
-        why = (f"{other.label} and {choice.label} fit the held-out blocks within one standard "
-               "error of each other")
+        why = f"{other.label} and {choice.label} fit the held-out blocks alike ({basis})"
         sep = ("data that excite the two differently: a wider operating range, other "
                "transients, or a measured column that follows one of them")
     return {"why": why, "separate_by": sep}

@@ -59,7 +59,7 @@ def test_replay_ends_by_itself_with_the_offline_isolation(demo_bag, tmp_path, ra
     out = tmp_path / "live.json"
     t0 = time.monotonic()
     # the bank's seven model nodes in two model-host processes (the CLI's hosting flags, as in
-    # the respawn and recorder tests below; the scenario run keeps one process per node)
+    # the recorder test below; the scenario run and the respawn test keep one process per node)
     r = _fdi("launch", "config/diesel.yaml", "--replay", str(bag), "--rate", str(rate),
              "--hosting", "container", "--containers", "2", "--json", str(out), timeout=180)
     wall = time.monotonic() - t0
@@ -110,8 +110,7 @@ def test_killed_supervisor_is_respawned_and_sigint_stops_a_background_launcher(d
     # a background job of a non-interactive shell: SIGINT inherited as ignored
     sh = subprocess.Popen(
         ["bash", "-c", f"{' '.join(FDI)} launch config/diesel.yaml --replay {bag} "
-         "--rate 0.5 --respawn-limit 2 --hosting container --containers 2 "
-         "& echo $!; wait $!; echo rc=$?"],
+         "--rate 0.5 --respawn-limit 2 & echo $!; wait $!; echo rc=$?"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         launcher = int(sh.stdout.readline())

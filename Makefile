@@ -15,7 +15,7 @@ demo: setup
 	$(VENV)/bin/fdi-ros demo --out out/demo
 
 test: setup
-	$(VENV)/bin/python -m pytest tests
+	bash scripts/test.sh
 
 test-fast: setup
 	$(VENV)/bin/python -m pytest tests -m "not graph and not slow"

@@ -130,16 +130,32 @@ class GraphWatcher:
         return bool(res.accepted), str(res.reason)
 
     def lifecycle_state(self, node_name: str, timeout: float = 10.0) -> str:
-        """Label of a lifecycle node's current state, via its get_state service."""
+        """Label of a lifecycle node's current state, via its get_state service.
+
+        The request is re-sent (it changes nothing) while no answer came: a server whose
+        response writer has not yet matched this client's reader drops its reply, and
+        ``wait_for_service`` sees only the request side of the match."""
         from lifecycle_msgs.srv import GetState
 
         cli = self.node.create_client(GetState, f"/{node_name}/get_state")
         try:
+            deadline = time.monotonic() + timeout
             if not cli.wait_for_service(timeout_sec=timeout):
                 return "unreachable"
-            fut = cli.call_async(GetState.Request())
-            self.spin_until(fut.done, timeout, f"get_state of {node_name}")
-            return fut.result().current_state.label
+            wait = 1.0
+            while True:
+                fut = cli.call_async(GetState.Request())
+                left = deadline - time.monotonic()
+                try:
+                    self.spin_until(fut.done, max(min(wait, left), 0.05),
+                                    f"get_state of {node_name}")
+                    return str(fut.result().current_state.label)
+                except TimeoutError:
+                    cli.remove_pending_request(fut)
+                    if time.monotonic() >= deadline:
+                        raise TimeoutError(f"no answer from /{node_name}/get_state in "
+                                           f"{timeout:.0f} s") from None
+                    wait = min(2 * wait, 4.0)
         finally:
             self.node.destroy_client(cli)
 

@@ -95,6 +95,10 @@ class Graph:
         self.echo = echo
         self.env = dict(os.environ if env is None else env)
         self.env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        # many node processes share few cores: one BLAS thread each (spinning BLAS worker
+        # threads of one node would take the core another node needs)
+        self.env.setdefault("OPENBLAS_NUM_THREADS", "1")
+        self.env.setdefault("OMP_NUM_THREADS", "1")
         self.env["PYTHONUNBUFFERED"] = "1"
         # parameter files live until stop() (a ROS launch file keeps them for its nodes)
         self._tmp = Path(tempfile.mkdtemp(prefix="fdi_launch_"))

@@ -25,9 +25,16 @@ h_deps=$(hash_of "$ROOT/requirements.txt" "$ROOT/requirements-extras.txt" "$ROOT
 if ! stamp_ok deps "$h_deps" || [ ! -x "$VENV/bin/python" ]; then
   echo "[setup] creating venv and installing pinned dependencies"
   [ -x "$VENV/bin/python" ] || "$PY" -m venv "$VENV"
-  "$VENV/bin/python" -m pip install -q --disable-pip-version-check -r "$ROOT/requirements.txt" \
-      -r "$ROOT/requirements-extras.txt" \
-      -c "$ROOT/constraints.txt"
+  # uv (pinned in constraints.txt) installs the same pinned set as pip, in parallel: ~30 s
+  # instead of ~85 s on 2 cores; pip does it when uv cannot be had.
+  if "$VENV/bin/python" -m pip install -q --disable-pip-version-check -c "$ROOT/constraints.txt" \
+        uv && [ -x "$VENV/bin/uv" ]; then
+    UV_NO_CACHE=1 "$VENV/bin/uv" pip install -q --python "$VENV/bin/python" --compile-bytecode \
+        -r "$ROOT/requirements.txt" -r "$ROOT/requirements-extras.txt" -c "$ROOT/constraints.txt"
+  else
+    "$VENV/bin/python" -m pip install -q --disable-pip-version-check \
+        -r "$ROOT/requirements.txt" -r "$ROOT/requirements-extras.txt" -c "$ROOT/constraints.txt"
+  fi
   # Pitfall 1 (ROS_ENV.md): the wheels' CMake exports carry the build machine's paths.
   "$VENV/bin/python" "$ROOT/scripts/fix_cmake_prefix.py" "$VENV"
   rm -f "$BUILD/msgs.stamp"

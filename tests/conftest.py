@@ -39,14 +39,21 @@ _background: list[subprocess.Popen] = []
 @pytest.hookimpl(trylast=True)  # after the deselection by -m / -k
 def pytest_collection_modifyitems(session, config, items):
     """Modules that need no bank first (kept whole: module fixtures are set up once), and the
-    banks the others need identified meanwhile, in one background process, in order of use."""
+    banks the others need identified meanwhile, in one background process, in order of use;
+    modules marked ``beside_graphs`` last."""
     needs: dict[str, list[str]] = {}
     for it in items:
         needs.setdefault(it.module.__name__, [])
         needs[it.module.__name__] += [BANKS[f] for f in it.fixturenames if f in BANKS]
-    items.sort(key=lambda it: bool(needs[it.module.__name__]))
+    # ... and modules marked beside_graphs last: scripts/test.sh runs them in the graph
+    # session, after the graphs, beside the other session's last modules
+    items.sort(key=lambda it: (it.get_closest_marker("beside_graphs") is not None,
+                               bool(needs[it.module.__name__])))
     order = list(dict.fromkeys(c for it in items for c in needs[it.module.__name__]))
-    if order and not config.getoption("collectonly"):
+    # `make test` (scripts/test.sh) runs the graph tests and the rest as two sessions at once:
+    # the graph session builds the banks, the other one's bank fixtures wait for them
+    builder = os.environ.get("FDI_ROS_TEST_BANK_BUILDER", "1") != "0"
+    if order and builder and not config.getoption("collectonly"):
         log = (ROOT / "build" / "bank_background.log")
         log.parent.mkdir(parents=True, exist_ok=True)
         with log.open("w") as fh:

@@ -247,3 +247,26 @@ def test_data_outside_the_identified_region_is_invalid_not_consistent():
     res = analyse({"y": ctx})
     assert res.verdict == "invalid" and not res.success
     assert "too few valid samples" in res.message
+
+
+@pytest.mark.parametrize("spread", [1.5, 30.0])
+def test_gain_and_offset_tied_only_over_a_narrow_range(spread):
+    """A gain of 0.94 on a reading that barely moves (300 +- 1.5) moves it as an offset of
+    -18 does, to far below the noise: whichever is named, the other is reported beside it as
+    a tie. Over a wide range (300 +- 30) the gain is named and the offset is no tie."""
+    rng = np.random.default_rng(int(spread * 10))
+    t = np.arange(0, 90, 0.05)
+    yhat = 300 + spread * (np.sin(2 * np.pi * t / 17) + 0.5 * np.sin(2 * np.pi * t / 5.3))
+    y = 0.94 * yhat + rng.normal(0, 0.05, t.size)
+    res = analyse({"y": _ctx(y, yhat, t)},
+                  config=DiscrepancyConfig(effects=("offset", "gain_error", "drift"),
+                                           onset=False))
+    top = res.findings[0]
+    tied = {a["effect"] for a in top.alternatives}
+    if spread < 5:
+        assert {top.effect} | tied >= {"gain_error", "offset"}, (top.label, tied)
+        why = next(a for a in top.alternatives if a["effect"] in ("gain_error", "offset"))
+        assert "wider range" in why["separate_by"]
+    else:
+        assert top.effect == "gain_error" and top.params["gain"] == pytest.approx(0.94, abs=1e-3)
+        assert "offset" not in tied

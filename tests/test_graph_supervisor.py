@@ -1,6 +1,7 @@
 """The supervisor against what ROS users and failures do to a live graph (real DDS, separate
 processes): an external lifecycle change, a frozen preprocessor, a supervisor killed with -9
-and started again (fault memory), the true fault's hypothesis model killed."""
+and started again (fault memory), the true fault's hypothesis model killed (one process per
+model node there; the others host the model nodes in two model-host processes)."""
 
 from __future__ import annotations
 
@@ -18,6 +19,9 @@ pytestmark = [pytest.mark.graph, pytest.mark.slow]
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "config" / "diesel.yaml"
+# where no model process is killed, the bank's model nodes live in two model-host processes
+# (each still a lifecycle node with its own services): less CPU for the same checks
+TWO_HOSTS = {"mode": "container", "containers": 2}
 SCENARIO = ROOT / "config" / "scenarios" / "demo_diesel_leak.yaml"
 SUP = "fdi_supervisor: "
 
@@ -92,8 +96,9 @@ def test_external_deactivate_and_frozen_preprocessor_fault_free(diesel_bank, tmp
                 os.kill(graph.node("fdi_preprocessor").proc.pid, signal.SIGCONT)
                 done["cont"] = time.monotonic()
 
+    # the model nodes in two model hosts: the external change reaches a hosted lifecycle node
     run, w = run_live(CONFIG, scenario=_scenario(tmp_path, faults=False, duration=14.0),
-                      during=during, timeout_s=120)
+                      during=during, timeout_s=120, hosting=TWO_HOSTS)
     assert done["external"].done() and done["external"].result().success
     bad_policy, bad_t0, good_t0 = (r.results[0] for r in done["params"])
     assert not bad_policy.successful and "policy" in bad_policy.reason
@@ -152,7 +157,7 @@ def test_fault_memory_survives_a_killed_supervisor(diesel_bank, tmp_path, monkey
         done["cleared"] = faults(w)["leak_ic_engine"]
 
     run, w = run_live(CONFIG, scenario=_scenario(tmp_path, faults=True, duration=9.0),
-                      during=during, timeout_s=120)
+                      during=during, timeout_s=120, hosting=TWO_HOSTS)
     before, after = done["before"], done["after"]
     assert run.ended  # ended by the data, though the supervisor was killed mid-run
     assert before.status == after.status == "CONFIRMED"

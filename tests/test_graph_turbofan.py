@@ -1,7 +1,9 @@
 """The turbofan through the same live graph: 16 lifecycle residual nodes (one per bank model of
 Diao & Passino), a small compressor-hub fault at 5 s growing to large at 15 s; the supervisor
 isolates it by the minimum residual held for T0 and switches the bank through the lifecycle
-services (checked with get_state)."""
+services (checked with get_state). The 16 nodes live in two model-host processes, as a
+component container holds components (each still a lifecycle node with its own services); the
+diesel graph tests run one process per node."""
 
 from __future__ import annotations
 
@@ -21,7 +23,8 @@ SCENARIO = ROOT / "config" / "turbofan_hub_small_to_large.yaml"
 @pytest.fixture(scope="module")
 def live(turbofan_bank):
     lines: list[str] = []
-    run, w = run_live(CONFIG, scenario=SCENARIO, timeout_s=150, log=lines.append)
+    run, w = run_live(CONFIG, scenario=SCENARIO, timeout_s=150, log=lines.append,
+                      hosting={"mode": "container", "containers": 2})
     return run, w, lines
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import signal
 import sys
+import threading
 import time
 import traceback
 from collections.abc import Callable, Sequence
@@ -14,6 +15,10 @@ from typing import Any
 
 # After a stop signal, keep executing callbacks this long for data already delivered.
 DRAIN_S = 0.3
+# After a stop signal, a process still alive this much later (a teardown stuck in the
+# middleware) prints every thread's stack and exits: 0 if the nodes' shutdown hooks (a
+# recorder closing its bag) had run, 3 if not. The launcher waits 15 s before SIGKILL.
+STOP_GRACE_S = 10.0
 
 
 def ensure_loopback_env() -> None:
@@ -75,10 +80,29 @@ def run_nodes(make_nodes: Callable[[], Sequence[Any]], *, executor: str = "singl
     rclpy.init(args=args if args is not None else sys.argv,
                signal_handler_options=SignalHandlerOptions.NO)
     nodes: list[Any] = []
-    stopping = {"flag": False}
+    # stopping: a stop signal came; hooks: the shutdown hooks are "running" or "done"
+    state = {"stopping": False, "hooks": ""}
+
+    def _give_up() -> None:
+        import faulthandler
+
+        if state["hooks"] == "running":
+            _arm()  # a shutdown hook at work (a recorder closing a large bag): let it finish
+            return
+        print(f"[fdi_ros] still not shut down {STOP_GRACE_S:.0f} s after the stop signal; "
+              "thread stacks follow, exiting", file=sys.stderr, flush=True)
+        faulthandler.dump_traceback(file=sys.stderr, all_threads=True)
+        os._exit(0 if state["hooks"] == "done" else 3)
+
+    def _arm() -> None:
+        timer = threading.Timer(STOP_GRACE_S, _give_up)
+        timer.daemon = True
+        timer.start()
 
     def _stop(signum: int, frame: Any) -> None:
-        stopping["flag"] = True
+        if not state["stopping"]:
+            _arm()
+        state["stopping"] = True
 
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
@@ -88,7 +112,7 @@ def run_nodes(make_nodes: Callable[[], Sequence[Any]], *, executor: str = "singl
         ex = make_executor(executor, threads)
         for node in nodes:
             ex.add_node(node)
-        while not stopping["flag"] and rclpy.ok():
+        while not state["stopping"] and rclpy.ok():
             ex.spin_once(timeout_sec=0.1)
         deadline = time.monotonic() + DRAIN_S
         while rclpy.ok() and time.monotonic() < deadline:
@@ -99,6 +123,7 @@ def run_nodes(make_nodes: Callable[[], Sequence[Any]], *, executor: str = "singl
         traceback.print_exc()
         code = 1
     finally:
+        state["hooks"] = "running"
         for node in nodes:
             if on_shutdown is not None:
                 try:
@@ -106,6 +131,8 @@ def run_nodes(make_nodes: Callable[[], Sequence[Any]], *, executor: str = "singl
                 except Exception:
                     traceback.print_exc()
                     code = 1
+        state["hooks"] = "done"
+        for node in nodes:
             try:
                 node.destroy_node()
             except Exception:

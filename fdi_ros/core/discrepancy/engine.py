@@ -409,8 +409,10 @@ def _time_varying(eff: Effect) -> bool:
     return eff.id == "drift" or bool(getattr(eff, "piecewise", False))
 
 
-def _verdict(findings: list[Finding], table: list[Candidate]) -> tuple[str, str]:
-    """Verdict and one-line message from the findings and the candidate table."""
+def _verdict(findings: list[Finding], table: list[Candidate], alpha: float = 0.05
+             ) -> tuple[str, str]:
+    """Verdict and one-line message from the findings and the candidate table (``alpha``: the
+    significance level, to tell a candidate dropped as too small from an inconsistent one)."""
     if findings:
         top = findings[0]
         return "discrepant", (f"{len(findings)} significant finding(s); top: {top.label} on "
@@ -419,9 +421,11 @@ def _verdict(findings: list[Finding], table: list[Candidate]) -> tuple[str, str]
            "with the data")
     if table and table[0].gain_pct >= 10.0:
         c = table[0]
+        why = ("moves the reading less than the relevance floor: real, but too small to matter"
+               if c.p_adjusted < alpha else "not consistently over the held-out blocks: an "
+               "effect outside the catalogue, e.g. intermittent, is possible")
         msg += (f" (the best candidate, {c.label} on {c.channel}, gains {c.gain_pct:.0f} % "
-                f"but not consistently over the held-out blocks, p_adj {c.p_adjusted:.2g}: "
-                f"an effect outside the catalogue, e.g. intermittent, is possible)")
+                f"held-out, p_adj {c.p_adjusted:.2g}, but {why})")
     return "consistent", msg
 
 
@@ -661,37 +665,67 @@ def _effective_n(views: dict[str, _Channel], st: _Step) -> float:
     return n
 
 
+# A significant explanation that achieves all but this share of the named one's held-out
+# RMSE gain is reported as a tie: what remains after either is the model's own error, and a
+# difference of a few percent of the gain is no evidence for one cause over the other.
+PRACTICAL_TIE = 0.05
+
+
 def _alternatives(views: dict[str, _Channel], chain: list[Hypothesis],
                   scored: list[tuple[Hypothesis, Candidate]], choice: Candidate,
-                  residual: str, alpha: float = 0.05, max_ties: int = 8
+                  residual: str, before: float, alpha: float = 0.05, max_ties: int = 8
                   ) -> list[dict[str, Any]]:
     """Other explanations the held-out data cannot tell apart from the choice, with their own
     parameters fitted on every valid sample: within one standard error of it, or significant
     themselves and not significantly worse than it (one-sided Wilcoxon over the blocks, level
-    ``alpha``). One per effect and carrier (its best variant), best first."""
+    ``alpha``), one per effect and carrier (its best variant), best first; then those that
+    are significant and achieve at least 1 - :data:`PRACTICAL_TIE` of the choice's held-out
+    gain (its simplest such variant): a difference that small, however significant with
+    little noise, does not say which explanation is true."""
     alternatives: list[dict[str, Any]] = []
     full: dict[str, np.ndarray] | None = None
     oks = {v: c.ok for v, c in views.items()}
     seen = {(choice.effect, choice.channel)}
-    for h, cand in sorted(scored, key=lambda hc: float(np.nanmean(hc[1].mse_blocks))):
+    ranked = sorted(scored, key=lambda hc: float(np.nanmean(hc[1].mse_blocks)))
+
+    def add(h: Hypothesis, cand: Candidate, basis: str) -> None:
+        nonlocal full
+        if full is None:
+            full = _fit_all(views, chain, oks)
+        params = _fit_in(views, h, full, oks, refine=True)[0]
+        alt_d = {"effect": cand.effect, "label": cand.label, "channel": cand.channel,
+                 "gain_pct": cand.gain_pct, "p_adjusted": cand.p_adjusted,
+                 "params": params, "residuals": list(cand.residuals)}
+        alt_d.update(tie_reason(choice, cand, residual, basis))
+        alternatives.append(alt_d)
+        seen.add((cand.effect, cand.channel))
+
+    for h, cand in ranked:
         if (cand.effect, cand.channel) in seen:
             continue  # one alternative per effect and channel: its best variant
         d = cand.mse_blocks - choice.mse_blocks
         d = d[np.isfinite(d)]
         if d.size < 3 or len(alternatives) >= max_ties:
             continue
-        if d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size) or (
-                cand.p_adjusted < alpha
-                and paired_p(cand.mse_blocks, choice.mse_blocks) >= alpha):
-            if full is None:
-                full = _fit_all(views, chain, oks)
-            params = _fit_in(views, h, full, oks, refine=True)[0]
-            alt_d = {"effect": cand.effect, "label": cand.label, "channel": cand.channel,
-                     "gain_pct": cand.gain_pct, "p_adjusted": cand.p_adjusted,
-                     "params": params, "residuals": list(cand.residuals)}
-            alt_d.update(tie_reason(choice, cand, residual))
-            alternatives.append(alt_d)
-            seen.add((cand.effect, cand.channel))
+        if d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size):
+            add(h, cand, "held-out error within one standard error")
+        elif cand.p_adjusted < alpha and paired_p(cand.mse_blocks,
+                                                  choice.mse_blocks) >= alpha:
+            add(h, cand, "significant itself, and not significantly worse over the held-out "
+                         "blocks")
+    # what each explains: the held-out RMS gain in the units of the score (every residual it
+    # was scored on, each in units of its noise level)
+    def gain(cand: Candidate) -> float:
+        return 1.0 - float(np.sqrt(max(float(np.nanmean(cand.mse_blocks)), 0.0) / before))
+
+    best = gain(choice) if before > 0 else 0.0
+    close = [(h, cand) for h, cand in ranked if cand.p_adjusted < alpha and best > 0
+             and gain(cand) >= (1.0 - PRACTICAL_TIE) * best]
+    for h, cand in sorted(close, key=lambda hc: (hc[1].n_params,
+                                                 float(np.nanmean(hc[1].mse_blocks)))):
+        if (cand.effect, cand.channel) not in seen and len(alternatives) < max_ties:
+            add(h, cand, f"held-out RMS gain {100 * gain(cand):.1f} % against "
+                         f"{100 * best:.1f} %: within {PRACTICAL_TIE:.0%} of it")
     return alternatives
 
 
@@ -768,6 +802,7 @@ def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
         level = _noise_levels(views, st, sc, todo)
         prim = {v: views[v] for v in primary}
         score_b = _joint_blocks(prim, {v: st.mse_b[v] for v in prim}, level)
+        base = float(np.nanmean(score_b))
         scored = [(h, _candidate(prim, h, st, sc, level, score_b)) for h in todo]
         # Bonferroni over the effect shapes tested on the measured channels: an input
         # sensor's error is one more carrier of a shape the channel's own candidates already
@@ -792,6 +827,7 @@ def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
             _score_all(views, [hh for hh, _ in cont], st, set(views), sc)
             level = _noise_levels(views, st, sc, [hh for hh, _ in cont])
             every = _joint_blocks(views, {v: st.mse_b[v] for v in views}, level)
+            base = float(np.nanmean(every))
             # two stages: the primary residuals say that something is wrong (the detection's
             # p-value, carried by every contender), all residuals together say what
             detect = choice.p_adjusted
@@ -815,7 +851,8 @@ def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
                      f"{' (significant)' if sig else ''}")
         if not sig:
             break
-        alternatives = _alternatives(views, chain, ties_from, choice, h.primary, cfg.alpha)
+        alternatives = _alternatives(views, chain, ties_from, choice, h.primary, base,
+                                     cfg.alpha)
         chain.append(h)
         for v, a in sc.after[id(h)].items():
             if v in primary:
@@ -835,6 +872,11 @@ def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
 
 MIN_GAIN_EFFECT = 0.01  # relevance floor of a gain error: |gain - 1| [1]
 MIN_EFFECT_REL = 0.01  # relevance floor of any effect: its error / RMS of the reading
+# ... and of an input sensor's error, also what it moves the channel's prediction by / RMS of
+# the channel: a quarter of the channel's accuracy class (measured: a T2 lag fitted to the
+# model's own transient error on fault-free data moves the flow prediction by 0.08 %; the
+# smallest p2 dead time stated detectable, 0.3 s, by 0.9 %)
+MIN_PROPAGATED_REL = 0.0025
 
 
 def _gain_magnitude(params: dict[str, Any]) -> float:
@@ -867,6 +909,22 @@ def _relative_size(c: _Channel, eff: Effect, p: dict[str, Any], pred: np.ndarray
     return mag / ref if ref > 0 else 0.0
 
 
+def _negligible(c: _Channel, eff: Effect, p: dict[str, Any], pred: np.ndarray,
+                nxt: np.ndarray) -> bool:
+    """Whether an effect stays below the relevance floor (see :func:`_refit`): its size
+    against the reading it errs on, and for an input sensor's error also what it moves the
+    channel's prediction by."""
+    if _relative_size(c, eff, p, pred, nxt) < MIN_EFFECT_REL:
+        return True
+    if not isinstance(eff, SensorError):
+        return False
+    shift = (nxt - pred)[c.ok]
+    shift = shift[np.isfinite(shift)]
+    level = float(np.sqrt(np.mean(c.ctx.y[c.ok] ** 2)))
+    moved = float(np.sqrt(np.mean(shift ** 2))) / level if shift.size and level > 0 else 0.0
+    return moved < MIN_PROPAGATED_REL
+
+
 def _relevant(views: dict[str, _Channel], chain: list[Hypothesis], h: Hypothesis) -> bool:
     """Whether ``h``, fitted on every valid sample on top of the chain, reaches the relevance
     floor of :func:`_refit` (a detection whose best explanation is a negligible wander is not
@@ -878,7 +936,7 @@ def _relevant(views: dict[str, _Channel], chain: list[Hypothesis], h: Hypothesis
     if e0.id == "gain_error" and _gain_magnitude(ps[0]) < MIN_GAIN_EFFECT:
         return False
     nxt = e0.apply(views[v0].ctx, preds[v0], ps[0])
-    return _relative_size(views[v0], e0, ps[0], preds[v0], nxt) >= MIN_EFFECT_REL
+    return not _negligible(views[v0], e0, ps[0], preds[v0], nxt)
 
 
 def _refit(views: dict[str, _Channel], chain: list[Hypothesis], findings: list[Finding],
@@ -893,8 +951,10 @@ def _refit(views: dict[str, _Channel], chain: list[Hypothesis], findings: list[F
     Any other effect is held to the same floor by its size: the error it puts on a reading
     (the channel's, or an input sensor's) must reach MIN_EFFECT_REL of that reading's RMS (a
     sensor's accuracy class, 1 % of reading) in RMS over the record, a drift by what it
-    accumulates, an input sensor's lag or dead time against how much the reading moves;
-    smaller effects are real but negligible wanders of the model.
+    accumulates, an input sensor's lag or dead time against how much the reading moves,
+    and an input sensor's error also by how much it moves the channel's prediction
+    (MIN_PROPAGATED_REL: a T2 lag of 0.3 s while T2 wanders by 2 K changes the predicted flow
+    by less than 0.1 %); smaller effects are real but negligible wanders of the model.
     """
     for c in views.values():
         c.ctx.cache.clear()
@@ -906,7 +966,7 @@ def _refit(views: dict[str, _Channel], chain: list[Hypothesis], findings: list[F
         c.ctx.folds, c.ctx.fold_ids = None, {}
     chains: dict[str, list[tuple[Effect, dict[str, Any]]]] = {v: [] for v in views}
     preds = {v: c.ctx.yhat for v, c in views.items()}
-    size = []
+    small = []
     for h, ps in zip(chain, fitted):
         first = True
         for (v, eff), p in zip(h.members, ps):
@@ -914,7 +974,7 @@ def _refit(views: dict[str, _Channel], chain: list[Hypothesis], findings: list[F
                 continue
             nxt = eff.apply(views[v].ctx, preds[v], p)
             if first:
-                size.append(_relative_size(views[v], eff, p, preds[v], nxt))
+                small.append(_negligible(views[v], eff, p, preds[v], nxt))
                 first = False
             chains[v].append((eff, p))
             preds[v] = nxt
@@ -924,7 +984,7 @@ def _refit(views: dict[str, _Channel], chain: list[Hypothesis], findings: list[F
     findings[:] = [f for f in findings
                    if not ((f.effect == "gain_error"
                             and _gain_magnitude(f.params) < MIN_GAIN_EFFECT)
-                           or size[f.step - 1] < MIN_EFFECT_REL)]
+                           or small[f.step - 1])]
     for v, c in views.items():
         if v in summary and not c.secondary:
             summary[v]["rmse_extended_in_sample"] = float(np.sqrt(np.mean(
@@ -933,12 +993,13 @@ def _refit(views: dict[str, _Channel], chain: list[Hypothesis], findings: list[F
 
 
 def _conclude(findings: list[Finding], table: list[Candidate],
-              summary: dict[str, dict[str, Any]]) -> tuple[list[Finding], str, str, bool]:
+              summary: dict[str, dict[str, Any]], alpha: float = 0.05
+              ) -> tuple[list[Finding], str, str, bool]:
     """Findings ranked, the verdict and its message, and whether any channel was analysed."""
     findings.sort(key=lambda f: -f.gain_pct)
     findings = [replace(f, rank=i + 1) for i, f in enumerate(findings)]
     table.sort(key=lambda c: -c.gain_pct)
-    verdict, msg = _verdict(findings, table)
+    verdict, msg = _verdict(findings, table, alpha)
     skipped = {ch: c["status"] for ch, c in summary.items() if "status" in c}
     success = len(skipped) < len(summary)
     if not success:
@@ -1031,7 +1092,7 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
                        if v in contexts})
     findings, verdict, msg, success = _conclude(findings, table,
                                                 {k: v for k, v in summary.items()
-                                                 if k in contexts})
+                                                 if k in contexts}, cfg.alpha)
     return DiscrepancyResult(findings=findings, candidates=table, verdict=verdict, message=msg,
                              success=success, channels=summary, chains=chains,
                              n_blocks=max([c.get("n_blocks", 0) for c in summary.values()]
@@ -1056,7 +1117,7 @@ def merge_results(a: DiscrepancyResult, b: DiscrepancyResult, *, b_suffix: str,
     else:
         channels.update({f"{ch} (crank-resolved)": v for ch, v in a.channels.items()})
     cands = sorted(a.candidates + b.candidates, key=lambda c: -c.gain_pct)
-    verdict, msg = _verdict(findings, cands)
+    verdict, msg = _verdict(findings, cands, a.config.alpha)
     if not (a.success and b.success):
         verdict = "invalid"
         msg = "; ".join(r.message for r in (a, b) if not r.success)

@@ -157,10 +157,12 @@ def input_gain_ties(data: Measured, model: Any, channel: str, gain: float, onset
     return out
 
 
-def tie_reason(choice: Any, other: Any, model_channel: str) -> dict[str, str]:
+def tie_reason(choice: Any, other: Any, model_channel: str,
+               basis: str = "held-out error within one standard error") -> dict[str, str]:
     """Why two candidates (``choice``, ``other``: objects with ``effect``, ``label``,
     ``channel`` and optionally ``residuals``, the residuals each moves) explain the data
-    alike, and which measurement would tell them apart."""
+    alike (``basis``: the criterion that tied them), and which measurement would tell them
+    apart."""
     a, b = choice.channel, other.channel
     lag_pair = {choice.effect, other.effect} == {"sensor_lag", "dead_time"}
     ra = set(getattr(choice, "residuals", ()) or (model_channel,))
@@ -171,18 +173,23 @@ def tie_reason(choice: Any, other: Any, model_channel: str) -> dict[str, str]:
             why = (f"{other.label} ({b}) moves the {shown} residual{'s' if len(ra) > 1 else ''}"
                    f" as {choice.label} ({a}) does: every relation here reads both signals "
                    "or neither, so the residuals cannot prove which signal is wrong "
-                   "(held-out error within one standard error, or not significantly worse)")
+                   f"({basis})")
             sep = (f"a relation that reads {a} but not {b}, or {b} but not {a} (a redundant "
                    f"sensor, or a model of another component that reads one of them)")
         else:
             only = sorted(ra ^ rb)
             why = (f"{other.label} ({b}) moves the residuals {sorted(rb)}, {choice.label} "
                    f"({a}) moves {sorted(ra)}; where only one of them acts ({only}) the two "
-                   "are not told apart on these data (the held-out error differs by less than "
-                   "the blocks' scatter)")
+                   f"are not told apart on these data ({basis})")
             sep = (f"operating points where the {' and '.join(only)} relation responds "
                    f"more strongly to {a} or {b}, or a relation that reads {a} but not {b}, "
                    f"or {b} but not {a}")
+    elif {choice.effect, other.effect} == {"gain_error", "offset"}:
+        why = (f"on {a} a gain and an offset differ by (gain - 1) times the reading's "
+               "departure from its mean: over the narrow range the reading covered here the "
+               f"two fit alike ({basis})")
+        sep = (f"readings of {a} over a wider range (a gain error grows with the reading, an "
+               "offset does not)")
     elif lag_pair:
         why = (f"on {a} a first-order lag tau and a dead time d = tau both make a slowly "
                "varying reading trail the truth by about tau dx/dt; they differ only in "
@@ -190,8 +197,7 @@ def tie_reason(choice: Any, other: Any, model_channel: str) -> dict[str, str]:
         sep = (f"the crank-angle pulsation of {a} (a lag damps it, a dead time shifts its "
                "phase in proportion to speed) or steeper transients")
     else:
-        why = (f"{other.label} and {choice.label} fit the held-out blocks within one standard "
-               "error of each other")
+        why = f"{other.label} and {choice.label} fit the held-out blocks alike ({basis})"
         sep = ("data that excite the two differently: a wider operating range, other "
                "transients, or a measured column that follows one of them")
     return {"why": why, "separate_by": sep}

@@ -24,10 +24,11 @@ REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data" / "liu_ice"
 MAPPING = REPO / "config" / "mappings" / "liu_ice.yaml"
 
-pytestmark = [pytest.mark.skipif(not DATA.is_dir(),
-                                 reason=f"LiU-ICE data directory {DATA} is absent"),
-              # CPU-bound and bank-free: make test runs it after the graphs, in their session
-              pytest.mark.beside_graphs]
+pytestmark = pytest.mark.skipif(not DATA.is_dir(),
+                                reason=f"LiU-ICE data directory {DATA} is absent")
+# CPU-bound and bank-free: make test runs these after the graphs, in their session (the MAF
+# gain file, the longest analysis, in the other session, so that the two end together)
+beside_graphs = pytest.mark.beside_graphs
 
 
 @pytest.fixture(scope="module")
@@ -35,6 +36,7 @@ def model():
     return identify_liu_ice([load_csv(DATA / f, MAPPING) for f in LIU_ICE_FAULT_FREE])
 
 
+@beside_graphs
 def test_model_fits_held_out_fault_free_data(model):
     for f in LIU_ICE_FAULT_FREE:
         d = load_csv(DATA / f, MAPPING)
@@ -69,6 +71,7 @@ def test_maf_gain_fault_is_named(model):
             assert a["separate_by"]
 
 
+@beside_graphs
 @pytest.mark.parametrize("name,gain,onset", [("ftp75city2_f_pim_090.csv", 0.90, 123.30),
                                              ("ftp75city2_f_pim_110.csv", 1.10, 123.00)])
 def test_manifold_pressure_gain_is_tied_or_named(model, name, gain, onset):
@@ -90,6 +93,7 @@ def test_manifold_pressure_gain_is_tied_or_named(model, name, gain, onset):
         assert any("p_im" in a.get("separate_by", "") for a in top.alternatives)
 
 
+@beside_graphs
 def test_boost_pressure_gain_is_named(model):
     """The boost pressure enters speed density only through its derivative; the boost map
     (p_ic over ambient) and the throttle relation read it: its 10 % gain is found there."""
@@ -122,6 +126,7 @@ def _with_holes(tmp_path: Path) -> Path:
     return path
 
 
+@beside_graphs
 def test_manifold_leak_named_through_the_cli_despite_holes(tmp_path):
     """The 6 mm leak, through the command line (model identified from the fault-free files,
     JSON, report, saved model) on the leak file with missing samples and a gap: the holes

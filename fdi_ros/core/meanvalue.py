@@ -34,8 +34,17 @@ from fdi_ros.core.measured import Measured
 
 
 def _basis(nz: np.ndarray, pz: np.ndarray, degree: int) -> np.ndarray:
-    cols = [nz ** i * pz ** j for i in range(degree + 1) for j in range(degree + 1 - i)]
-    return np.stack(cols, axis=-1)
+    """Monomials ``nz**i * pz**j`` (i + j <= degree) along a last axis, from running powers
+    (the model is re-run thousands of times per analysis: no power function, one array)."""
+    npow, ppow = [np.ones_like(nz)], [np.ones_like(pz)]
+    for _ in range(degree):
+        npow.append(npow[-1] * nz)
+        ppow.append(ppow[-1] * pz)
+    terms = [(i, j) for i in range(degree + 1) for j in range(degree + 1 - i)]
+    out = np.empty((len(terms),) + np.broadcast_shapes(nz.shape, pz.shape))
+    for k, (i, j) in enumerate(terms):
+        np.multiply(npow[i], ppow[j], out=out[k])
+    return np.moveaxis(out, 0, -1)
 
 
 @dataclass(frozen=True)

@@ -270,3 +270,36 @@ def test_gain_and_offset_tied_only_over_a_narrow_range(spread):
     else:
         assert top.effect == "gain_error" and top.params["gain"] == pytest.approx(0.94, abs=1e-3)
         assert "offset" not in tied
+
+
+def test_an_explanation_worse_than_the_model_is_never_a_tie():
+    """One held-out block an explanation cannot predict (1e20) puts its mean block error
+    within one standard error of anything (mean and standard error both ~ that block / n):
+    an explanation worse than the model as it is must not be reported as a tie. Blocks where
+    neither acts (before the onset) are equal."""
+    from fdi_ros.core.discrepancy.engine import Candidate, _alternatives
+
+    seed = int(np.random.SeedSequence().entropy % 2**31)  # drawn at test time
+    rng = np.random.default_rng(seed)
+    n_before, n_after = rng.integers(6, 14), rng.integers(6, 14)
+    base = rng.uniform(0.5, 2.0, n_before + n_after)
+    choice_blocks = base.copy()
+    choice_blocks[n_before:] *= rng.uniform(0.05, 0.3, n_after)  # the choice explains them
+    junk = base.copy()
+    junk[n_before] = 1e20  # a block it cannot predict
+    junk[n_before + 1:] *= rng.uniform(5.0, 20.0, n_after - 1)
+
+    def cand(label: str, blocks: np.ndarray, gain: float) -> Candidate:
+        return Candidate(effect="gain_error", label=label, channel="x", n_params=1,
+                         rmse_before=1.0, rmse_after=1.0 - gain / 100, gain_pct=gain,
+                         p_value=0.001, p_adjusted=0.01, p_dm=0.01, mse_blocks=blocks,
+                         residuals=("x",), shown_on="x")
+
+    choice = cand("choice", choice_blocks, 60.0)
+    other = cand("junk", junk, -1e10)
+    other = Candidate(**{**other.__dict__, "effect": "input_dependence"})
+    d = other.mse_blocks - choice.mse_blocks
+    assert d.mean() <= d.std(ddof=1) / np.sqrt(d.size), seed  # the trap is armed
+    ties = _alternatives({}, [], [(None, choice), (None, other)], choice, "x",
+                         before=float(base.mean()))
+    assert ties == [], seed

@@ -703,6 +703,10 @@ def _alternatives(views: dict[str, _Channel], chain: list[Hypothesis],
     for h, cand in ranked:
         if (cand.effect, cand.channel) in seen:
             continue  # one alternative per effect and channel: its best variant
+        if not (cand.gain_pct > 0 and float(np.nanmean(cand.mse_blocks)) < before):
+            # worse than the model as it is: no explanation at all (one block it cannot
+            # predict puts the mean within one standard error of anything)
+            continue
         d = cand.mse_blocks - choice.mse_blocks
         d = d[np.isfinite(d)]
         if d.size < 3 or len(alternatives) >= max_ties:

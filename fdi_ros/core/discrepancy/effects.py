@@ -543,9 +543,16 @@ class InputDependence(Effect):
     def n_params(self) -> int:
         return self.degree
 
-    def _basis(self, x: np.ndarray, center: float, scale: float, sq_mean: float
-               ) -> np.ndarray:
+    def _basis(self, x: np.ndarray, center: float, scale: float, sq_mean: float,
+               z_range: Any = None) -> np.ndarray:
         z = (x - center) / scale
+        if z_range is not None:
+            # no extrapolation beyond one span of the fitted z on either side: a column that
+            # barely moved while fitted (the derivative of an ambient pressure) can jump
+            # elsewhere, and its square would then predict nonsense (1e20)
+            lo, hi = float(z_range[0]), float(z_range[1])
+            span = hi - lo
+            z = np.clip(z, lo - span, hi + span)
         cols = [z] + ([z ** 2 - sq_mean] if self.degree >= 2 else [])
         return np.stack(cols, axis=1)
 
@@ -560,14 +567,16 @@ class InputDependence(Effect):
         scale = float(np.std(x[m])) or 1.0
         A = self._basis(x[m], center, scale, 1.0)
         coef, *_ = np.linalg.lstsq(A, ctx.y[m] - base[m], rcond=None)
+        z = (x[m] - center) / scale
         return {"input": self.column, "center": center, "scale": scale, "sq_mean": 1.0,
-                "coef": [float(c) for c in coef]}
+                "coef": [float(c) for c in coef],
+                "z_range": [float(np.min(z)), float(np.max(z))]}
 
     def apply(self, ctx: ChannelContext, base: np.ndarray, params: dict[str, Any]
               ) -> np.ndarray:
         x = ctx.columns[params["input"]]
-        corr = self._basis(x, params["center"], params["scale"],
-                           params["sq_mean"]) @ np.asarray(params["coef"])
+        corr = self._basis(x, params["center"], params["scale"], params["sq_mean"],
+                           params.get("z_range")) @ np.asarray(params["coef"])
         # where the explaining column is missing, the extension falls back to the model
         return base + np.where(np.isfinite(corr), corr, 0.0)
 

@@ -32,7 +32,8 @@ def _save(fig: Any, out: Path, name: str, caption: str, figs: list[tuple[str, st
 def _fmt_params(p: dict[str, Any]) -> str:
     out = []
     for k, v in p.items():
-        if k in ("a", "b", "center", "scale", "sq_mean", "t_ref_s", "cd", "cda_mm2") or v is None:
+        if k in ("a", "b", "center", "scale", "sq_mean", "z_range", "t_ref_s", "cd",
+                 "cda_mm2") or v is None:
             continue
         if isinstance(v, float):
             out.append(f"{k}={v:.4g}")

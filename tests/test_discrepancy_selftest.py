@@ -16,6 +16,7 @@ from fdi_ros.plants.diesel import discrepancy_scenarios as sc
 from fdi_ros.plants.diesel.discrepancy_selftest import (
     DETECTABLE,
     EFFECTS,
+    LOCAL_SHARE,
     draw_case,
     run_selftest,
     summarise,
@@ -54,11 +55,32 @@ def test_draw_is_log_uniform_within_the_stated_ranges():
         for _ in range(20):
             p = draw_case(rng, eff)
             key = "gain" if eff == "gain_error" else None
-            v = abs(p[key or next(k for k in p if k not in ("order", "phase_deg", "n"))])
+            v = abs(p[key or DETECTABLE[eff][0]])
             _, lo, hi = DETECTABLE[eff]
             if eff == "gain_error":
                 v = max(v, 1.0 / v)
             assert lo * (1 - 1e-12) <= v <= hi * (1 + 1e-12), (eff, p)
+            if eff == "local_region":
+                assert LOCAL_SHARE[0] <= p["share"] <= LOCAL_SHARE[1], p
+
+
+def test_local_band_placed_where_the_window_spends_its_drawn_share():
+    """A hidden local offset's speed band covers the drawn share of the window's samples
+    (within what 10 rpm steps allow), on speed records drawn at random."""
+    import numpy as np
+
+    from fdi_ros.plants.diesel.discrepancy_selftest import place_band
+
+    seed = secrets.randbelow(2**31)
+    rng = np.random.default_rng(seed)
+    for _ in range(20):
+        t = np.linspace(0.0, 60.0, 3000)
+        n = 2000 + np.cumsum(rng.normal(0, 15, t.size)) + 400 * np.sin(t / rng.uniform(3, 20))
+        share, width = rng.uniform(*LOCAL_SHARE), rng.uniform(400, 700)
+        lo, hi = place_band(n, width, share)
+        assert hi - lo >= width - 1e-9
+        got = np.mean((n >= lo) & (n < hi))
+        assert got == pytest.approx(share, abs=0.05), (seed, got, share)
 
 
 def test_summary_counts_confusions_and_false_discoveries():

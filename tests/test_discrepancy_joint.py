@@ -156,3 +156,43 @@ def test_throttle_and_pressure_map_recover_known_coefficients():
     back = ResidualSet.from_dict(both.to_dict())
     assert back == both
     assert both.measures == {"maf_throttle": "maf", "p_ic": "p_ic"}
+
+
+@dataclass(frozen=True)
+class OneRelationChecked(TwoRelations):
+    """The same plant with the second relation a check: it proposes nothing, it scores the
+    leading explanations of the first."""
+
+    checks = ("y2",)
+
+
+def test_report_evidence_is_the_joint_scoring_the_choice_was_made_on(tmp_path):
+    """A gain of ``u`` on the first relation alone is a gain of ``v`` or of ``y1`` too; the
+    check relation (which reads ``u`` but not ``v``) decides. The report's evidence figure
+    sets the top finding against the runner-up of that joint scoring, not of the first
+    relation alone, where the two are equal block by block."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from fdi_ros.core.discrepancy.report import _evidence_figure, runner_up
+
+    res, _ = discover(_record(11, hide="u", gain=1.07), OneRelationChecked(),
+                      config=DiscrepancyConfig(effects=("gain_error", "offset", "drift"),
+                                               onset=False))
+    top = res.findings[0]
+    assert (top.effect, top.channel) == ("gain_error", "u")
+    first, second, joint = runner_up(res)
+    assert joint and (first.label, first.channel) == (top.label, top.channel)
+    assert (second.effect, second.channel) != ("gain_error", "u")
+    # the runner-up is worse where the check relation reads u: over the blocks, clearly
+    assert np.nanmean(second.mse_blocks) > 1.5 * np.nanmean(first.mse_blocks)
+    # on the first relation alone the best other explanation was as good (a tie there)
+    alone = [c for c in res.candidates if (c.effect, c.channel) != ("gain_error", "u")]
+    best_alone = min(alone, key=lambda c: float(np.nanmean(c.mse_blocks)))
+    assert np.nanmean(best_alone.mse_blocks) < 1.2 * np.nanmean(
+        next(c for c in res.candidates if c.label == top.label
+             and c.channel == top.channel).mse_blocks)
+    name, caption = _evidence_figure(plt, tmp_path, res)
+    assert (tmp_path / name).is_file() and "every residual" in caption

@@ -160,6 +160,9 @@ class DiscrepancyResult:
     seconds: float
     config: DiscrepancyConfig
     oof: dict[str, dict[str, np.ndarray]] = field(default_factory=dict, repr=False)
+    # the first step's leading explanations scored on every residual at once (their
+    # mse_blocks: the joint held-out score), when other residuals checked them
+    joint: list[Candidate] = field(default_factory=list, repr=False)
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = _jsonable({
@@ -778,8 +781,8 @@ def _contenders(scored: list[tuple[Hypothesis, Candidate]], choice: Candidate,
 
 def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
                 progress: Callable[[str], None] | None, findings: list[Finding],
-                table: list[Candidate], oof: dict[str, dict[str, np.ndarray]]
-                ) -> tuple[list[Hypothesis], int]:
+                table: list[Candidate], oof: dict[str, dict[str, np.ndarray]],
+                joint: list[Candidate] | None = None) -> tuple[list[Hypothesis], int]:
     """Add the significant explanations, best first, to the model of every residual they
     move; returns the chain and the number of steps taken."""
     primary = {v: c.ctx for v, c in views.items() if not c.secondary}
@@ -838,6 +841,8 @@ def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
             ties_from = [(hh, replace(_candidate(views, hh, st, sc, level, every),
                                       p_adjusted=detect)) for hh, _ in cont]
             h, choice = _one_se_choice(ties_from, cfg.alpha, n_eff)
+            if step == 0 and joint is not None:
+                joint.extend(c for _, c in ties_from)
         if progress and sig and second:
             def per_residual(hh: Hypothesis) -> str:
                 ma = sc.mse_a[id(hh)]
@@ -1090,8 +1095,9 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
     views = _views(contexts, secondary or {}, cfg, summary)
     chains: dict[str, list[tuple[Effect, dict[str, Any]]]] = {ch: [] for ch in contexts}
     nit = 0
+    joint: list[Candidate] = []
     if any(not c.secondary for c in views.values()):
-        chain, nit = _grow_chain(views, cfg, progress, findings, table, oof)
+        chain, nit = _grow_chain(views, cfg, progress, findings, table, oof, joint)
         chains.update({v: ch for v, ch in _refit(views, chain, findings, summary).items()
                        if v in contexts})
     findings, verdict, msg, success = _conclude(findings, table,
@@ -1101,7 +1107,8 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
                              success=success, channels=summary, chains=chains,
                              n_blocks=max([c.get("n_blocks", 0) for c in summary.values()]
                                           or [0]), nit=nit,
-                             seconds=time.perf_counter() - t0, config=cfg, oof=oof)
+                             seconds=time.perf_counter() - t0, config=cfg, oof=oof,
+                             joint=joint)
 
 
 def merge_results(a: DiscrepancyResult, b: DiscrepancyResult, *, b_suffix: str,
@@ -1129,4 +1136,4 @@ def merge_results(a: DiscrepancyResult, b: DiscrepancyResult, *, b_suffix: str,
                              success=a.success and b.success, channels=channels,
                              chains=chains, n_blocks=max(a.n_blocks, b.n_blocks),
                              nit=a.nit + b.nit, seconds=a.seconds + b.seconds,
-                             config=a.config, oof=a.oof)
+                             config=a.config, oof=a.oof, joint=a.joint + b.joint)

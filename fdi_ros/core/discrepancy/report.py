@@ -83,25 +83,30 @@ def order_spectrum(alpha: np.ndarray, resid: np.ndarray, orders: np.ndarray) -> 
     return np.array(amp)
 
 
-def runner_up(result: DiscrepancyResult) -> tuple[Candidate, Candidate] | None:
-    """(top candidate, runner-up candidate) of the top finding's step 1, or None.
+def runner_up(result: DiscrepancyResult) -> tuple[Candidate, Candidate, bool] | None:
+    """(top candidate, runner-up candidate, scored jointly) of the top finding's step 1, or
+    None.
 
-    The runner-up is the best candidate of another effect on the same channel (a variant of
-    the same effect, e.g. after an onset vs always on, is not a competing explanation).
+    The runner-up is the best candidate of another effect or signal (a variant of the same
+    effect, e.g. after an onset vs always on, is not a competing explanation). Where other
+    residuals checked the leading explanations, both come from that joint scoring (every
+    residual each explanation moves, in units of its noise level): what the choice was made
+    on; else from the channel's own candidate table.
     """
     if not result.findings:
         return None
     top = result.findings[0]
-    first = next((c for c in result.candidates if c.label == top.label
-                  and c.channel == top.channel), None)
-    if first is None:
-        return None
-    same = [c for c in result.candidates if c.mse_blocks.size == first.mse_blocks.size]
-    second = next((c for c in same if (c.effect, c.channel) != (top.effect, top.channel)),
-                  None)
-    if first is None or second is None or first.mse_blocks.size != second.mse_blocks.size:
-        return None
-    return first, second
+    for pool, joint in ((result.joint, True), (result.candidates, False)):
+        first = next((c for c in pool if c.label == top.label and c.channel == top.channel),
+                     None)
+        if first is None:
+            continue
+        same = sorted((c for c in pool if c.mse_blocks.size == first.mse_blocks.size
+                       and (c.effect, c.channel) != (top.effect, top.channel)),
+                      key=lambda c: float(np.nanmean(c.mse_blocks)))
+        if same:
+            return first, same[0], joint
+    return None
 
 
 def _evidence_figure(plt: Any, out: Path, result: DiscrepancyResult
@@ -109,27 +114,29 @@ def _evidence_figure(plt: Any, out: Path, result: DiscrepancyResult
     pair = runner_up(result)
     if pair is None:
         return None
-    a, b = pair
+    a, b, joint = pair
     blocks = np.arange(a.mse_blocks.size)
     fig, ax = plt.subplots(2, 1, figsize=(10, 5.5), sharex=True)
-    ax[0].plot(blocks, np.sqrt(a.mse_blocks), "o-", ms=3, label=f"top: {a.label} "
-               f"({a.gain_pct:.1f} %, p_adj {a.p_adjusted:.2g})")
-    ax[0].plot(blocks, np.sqrt(b.mse_blocks), "s-", ms=3, label=f"runner-up: {b.label} "
-               f"({b.gain_pct:.1f} %, p_adj {b.p_adjusted:.2g})")
-    ax[0].set_ylabel("held-out RMSE of the residual")
+    ax[0].plot(blocks, np.sqrt(a.mse_blocks), "o-", ms=3, label=f"top: {a.label} on "
+               f"{a.channel} ({a.gain_pct:.1f} %, p_adj {a.p_adjusted:.2g})")
+    ax[0].plot(blocks, np.sqrt(b.mse_blocks), "s-", ms=3, label=f"runner-up: {b.label} on "
+               f"{b.channel} ({b.gain_pct:.1f} %, p_adj {b.p_adjusted:.2g})")
+    ax[0].set_ylabel("held-out score (RMS, each residual\nin units of its noise level)")
     ax[0].legend(fontsize=8)
     d = b.mse_blocks - a.mse_blocks
     ax[1].bar(blocks, d, color=["C2" if v > 0 else "C3" for v in d])
     ax[1].axhline(0, color="k", lw=0.5)
-    ax[1].set_ylabel("MSE runner-up - top")
+    ax[1].set_ylabel("runner-up - top")
     ax[1].set_xlabel("held-out block (in time order)")
-    ax[0].set_title("Evidence: the top finding against the best other effect, block by block")
+    ax[0].set_title("Evidence: the top finding against the best other explanation, block by "
+                    "block" + (" (scored on every residual it moves)" if joint else ""))
     fig.tight_layout()
     fig.savefig(out / "evidence_top_vs_runner_up.png", dpi=90)
     plt.close(fig)
     return ("evidence_top_vs_runner_up.png",
-            f"Evidence: {a.label} against the runner-up {b.label} on held-out blocks "
-            f"(green: the top finding predicts the block better)")
+            f"Evidence: {a.label} against the runner-up {b.label} on {b.channel} on held-out "
+            f"blocks{', scored on every residual each moves' if joint else ''} (green: the "
+            f"top finding predicts the block better)")
 
 
 def write_report(out_dir: str | Path, data: Measured, baseline: Any, extended: ExtendedModel,

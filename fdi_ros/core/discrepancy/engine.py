@@ -330,6 +330,18 @@ def _nests(big: Hypothesis, small: Hypothesis) -> bool:
         b, "piecewise", True)
 
 
+def _finite_diff(blocks: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Block-by-block ``blocks - ref`` where both are known."""
+    d = blocks - ref
+    return np.asarray(d[np.isfinite(d)], float)
+
+
+def _within_one_se(d: np.ndarray, tol: float = 0.0) -> bool:
+    """Whether the mean of block differences ``d`` (:func:`_finite_diff`; at least 3) is
+    at most one standard error (plus ``tol``): the held-out data cannot tell the two apart."""
+    return bool(d.size >= 3 and d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size) + tol)
+
+
 def penalised(c: Candidate, n_eff: float) -> float:
     """Bayesian information criterion of a candidate on its held-out blocks.
 
@@ -365,9 +377,7 @@ def _one_se_choice(scored: list[tuple[Hypothesis, Candidate]], alpha: float,
     tol = 1e-3 * float(np.nanmean(best[1].mse_blocks))
 
     def within_one_se(c: Candidate) -> bool:
-        d = c.mse_blocks - best[1].mse_blocks
-        d = d[np.isfinite(d)]
-        return bool(d.size >= 3 and d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size) + tol)
+        return _within_one_se(_finite_diff(c.mse_blocks, best[1].mse_blocks), tol)
 
     if getattr(_lead(best[0]), "sensor", ""):
         # the same kind of error of a measured channel, within one standard error of an input
@@ -710,11 +720,10 @@ def _alternatives(views: dict[str, _Channel], chain: list[Hypothesis],
             # worse than the model as it is: no explanation at all (one block it cannot
             # predict puts the mean within one standard error of anything)
             continue
-        d = cand.mse_blocks - choice.mse_blocks
-        d = d[np.isfinite(d)]
+        d = _finite_diff(cand.mse_blocks, choice.mse_blocks)
         if d.size < 3 or len(alternatives) >= max_ties:
             continue
-        if d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size):
+        if _within_one_se(d):
             add(h, cand, "held-out error within one standard error")
         elif cand.p_adjusted < alpha and paired_p(cand.mse_blocks,
                                                   choice.mse_blocks) >= alpha:
@@ -762,10 +771,9 @@ def _contenders(scored: list[tuple[Hypothesis, Candidate]], choice: Candidate,
     out = []
     best = before - float(np.nanmean(choice.mse_blocks))
     for h, c in sorted(scored, key=lambda hc: float(np.nanmean(hc[1].mse_blocks))):
-        d = c.mse_blocks - choice.mse_blocks
-        d = d[np.isfinite(d)]
+        d = _finite_diff(c.mse_blocks, choice.mse_blocks)
         if c is choice or (d.size >= 3 and (
-                d.mean() <= np.std(d, ddof=1) / np.sqrt(d.size)
+                _within_one_se(d)
                 or before - float(np.nanmean(c.mse_blocks)) >= 0.9 * best
                 or paired_p(c.mse_blocks, choice.mse_blocks) >= alpha)):
             out.append((h, c))
@@ -782,7 +790,7 @@ def _contenders(scored: list[tuple[Hypothesis, Candidate]], choice: Candidate,
 def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
                 progress: Callable[[str], None] | None, findings: list[Finding],
                 table: list[Candidate], oof: dict[str, dict[str, np.ndarray]],
-                joint: list[Candidate] | None = None) -> tuple[list[Hypothesis], int]:
+                joint: list[Candidate]) -> tuple[list[Hypothesis], int]:
     """Add the significant explanations, best first, to the model of every residual they
     move; returns the chain and the number of steps taken."""
     primary = {v: c.ctx for v, c in views.items() if not c.secondary}
@@ -830,7 +838,7 @@ def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
         if sig and second and _relevant(views, chain, h):
             # the leading explanations are checked on the secondary residuals too: scored
             # jointly over every residual, the one that explains all of them is named
-            cont = _contenders(scored, choice, float(np.nanmean(score_b)), cfg.alpha)
+            cont = _contenders(scored, choice, base, cfg.alpha)
             _score_all(views, [hh for hh, _ in cont], st, set(views), sc)
             level = _noise_levels(views, st, sc, [hh for hh, _ in cont])
             every = _joint_blocks(views, {v: st.mse_b[v] for v in views}, level)
@@ -841,7 +849,7 @@ def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
             ties_from = [(hh, replace(_candidate(views, hh, st, sc, level, every),
                                       p_adjusted=detect)) for hh, _ in cont]
             h, choice = _one_se_choice(ties_from, cfg.alpha, n_eff)
-            if step == 0 and joint is not None:
+            if step == 0:
                 joint.extend(c for _, c in ties_from)
         if progress and sig and second:
             def per_residual(hh: Hypothesis) -> str:

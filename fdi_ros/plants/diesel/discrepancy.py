@@ -78,7 +78,7 @@ class DieselReferenceBaseline:
         eta = np.full(n.shape, np.nan)
         if ok.any():
             out, valid = self._ref.predict(n[ok], rho2[ok], use_tables=self.use_tables,
-                                           outputs=("eta_v",))
+                                           phases=False)
             eta[ok] = np.where(valid, out["eta_v"], np.nan)
         m_th = n / 120.0 * self.displacement_l * 1e-3 * rho2 * 3600.0
         return {"maf": eta * m_th}

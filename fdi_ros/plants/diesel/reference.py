@@ -297,18 +297,18 @@ class ReferenceModelSet:
         return self.validity.contains(data, size), self.validity.reasons(data, size)
 
     def predict(self, n, rho2, *, use_tables: bool = True,
-                extra: Mapping[str, object] | None = None,
-                outputs: tuple[str, ...] | None = None
+                extra: Mapping[str, object] | None = None, phases: bool = True
                 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """Reference values at the operating points and a validity flag per point.
 
-        ``extra``: values of the extra model inputs (actuator commands) by name. ``outputs``:
-        only these (default: all; the validity flag is still every amplitude's). One operating
+        ``extra``: values of the extra model inputs (actuator commands) by name. ``phases``:
+        also the phase maps (they do not decide the validity; a caller that needs only eta_V
+        and the flag leaves them out). One operating
         point at a time (the per-segment path) is memoised for the last point: the bank's
         hypothesis models all ask for the reference at the same segment."""
         X = self._matrix(n, rho2, extra)
-        if outputs is not None:
-            return self._predict(X, use_tables=use_tables, outputs=outputs)
+        if not phases:
+            return self._predict(X, use_tables=use_tables, phases=False)
         if X.shape[0] == 1:
             key = (tuple(X[0].tolist()), bool(use_tables))
             memo = self.__dict__.get("_memo")
@@ -320,13 +320,12 @@ class ReferenceModelSet:
             return out, valid
         return self._predict(X, use_tables=use_tables)
 
-    def _predict(self, X: np.ndarray, *, use_tables: bool,
-                 outputs: tuple[str, ...] | None = None
+    def _predict(self, X: np.ndarray, *, use_tables: bool, phases: bool = True
                  ) -> tuple[dict[str, np.ndarray], np.ndarray]:
         valid = self.models[self.outputs[0]].in_region(X)
         out = {}
         for k in self.outputs:
-            if k in PHASES and outputs is not None and k not in outputs:
+            if k in PHASES and not phases:
                 continue  # phases do not decide the validity
             if k in PHASES and f"{k}_cos" in self.models:
                 # Phase from the phasor maps: no wrap-around anywhere in the map. Phases have

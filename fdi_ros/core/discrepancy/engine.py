@@ -223,18 +223,6 @@ def make_blocks(t: np.ndarray, ok: np.ndarray, n_blocks: int,
     return np.where(ok, blk, -1)
 
 
-def fit_chain(ctx: ChannelContext, chain: list[Effect], train: np.ndarray, *,
-              refine: bool = False) -> tuple[np.ndarray, list[dict[str, Any]]]:
-    """Fit the effects one after the other on ``train``; the full-length prediction."""
-    pred = ctx.yhat
-    params = []
-    for eff in chain:
-        p = eff.fit(ctx, pred, train, refine=refine)
-        pred = eff.apply(ctx, pred, p)
-        params.append(p)
-    return pred, params
-
-
 def apply_chain(ctx: ChannelContext, chain: list[tuple[Effect, dict[str, Any]]]) -> np.ndarray:
     pred = ctx.yhat
     for eff, p in chain:
@@ -554,12 +542,7 @@ def _held_out_chain(views: dict[str, _Channel], chain: list[Hypothesis]) -> _Ste
     bases: dict[str, list[np.ndarray]] = {v: [] for v in views}
     before = {v: np.full(c.ctx.n, np.nan) for v, c in views.items()}
     for k in range(len(any_view.trains)):
-        preds = {v: c.ctx.yhat for v, c in views.items()}
-        trains = {v: c.trains[k] for v, c in views.items()}
-        for h in chain:
-            for (v, eff), p in zip(h.members, _fit_in(views, h, preds, trains)):
-                if v in views:
-                    preds[v] = eff.apply(views[v].ctx, preds[v], p)
+        preds = _fit_all(views, chain, {v: c.trains[k] for v, c in views.items()})
         for v, c in views.items():
             bases[v].append(preds[v])
             te = c.tests[k]

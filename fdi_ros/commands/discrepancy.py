@@ -130,26 +130,35 @@ def build_baseline(args, say):
             f"{', '.join(Path(f).name for f in files)}")
         return identify_liu_ice([load_csv(f, mapping) for f in files],
                                 fraction=args.ident_fraction)
-    # diesel: the plant's fault-free runs (cached: they take seconds to simulate and fit)
-    from fdi_ros.core.meanvalue import SpeedDensityModel
-    from fdi_ros.plants.diesel import discrepancy_scenarios as sc
-
     if args.ident:
         from fdi_ros.core.measured import load_measured
+        from fdi_ros.plants.diesel import discrepancy_scenarios as sc
 
         return sc.diesel_model_template().fit([load_measured(f, args.mapping)
                                                for f in args.ident])
+    return diesel_baseline(say)
+
+
+def diesel_baseline(say):
+    """The diesel baseline identified on the plant's fault-free runs (cached: they take
+    seconds to simulate and fit; the cache holds the model of one template, a changed
+    template is identified again)."""
+    from fdi_ros.core.discrepancy.model import baseline_from_dict
+    from fdi_ros.plants.diesel import discrepancy_scenarios as sc
+
+    template = sc.diesel_model_template().to_dict()
     if DIESEL_CACHE.is_file():
-        return SpeedDensityModel.from_dict(json.loads(DIESEL_CACHE.read_text()))
+        cached = json.loads(DIESEL_CACHE.read_text())
+        if cached.get("template") == template:
+            return baseline_from_dict(cached["model"])
     say("identifying the diesel speed-density + pulsation model on 3 fault-free plant runs")
     model = sc.diesel_baseline()
     DIESEL_CACHE.parent.mkdir(parents=True, exist_ok=True)
-    DIESEL_CACHE.write_text(json.dumps(model.to_dict()))
+    DIESEL_CACHE.write_text(json.dumps({"template": template, "model": model.to_dict()}))
     return model
 
 
 def run_selftest(args: argparse.Namespace) -> int:
-    from fdi_ros.plants.diesel import discrepancy_scenarios as sc
     from fdi_ros.plants.diesel.discrepancy_selftest import run_selftest as selftest
 
     def say(msg: str) -> None:
@@ -159,15 +168,7 @@ def run_selftest(args: argparse.Namespace) -> int:
     if args.n < 0 or (args.nulls is not None and args.nulls < 0):
         raise ValueError("--n and --nulls must be >= 0")
     say(f"self-test: {args.n} random cases + nulls, seed {args.seed}")
-    if DIESEL_CACHE.is_file():
-        from fdi_ros.core.meanvalue import SpeedDensityModel
-
-        baseline = SpeedDensityModel.from_dict(json.loads(DIESEL_CACHE.read_text()))
-    else:
-        say("identifying the diesel baseline on 3 fault-free plant runs")
-        baseline = sc.diesel_baseline()
-        DIESEL_CACHE.parent.mkdir(parents=True, exist_ok=True)
-        DIESEL_CACHE.write_text(json.dumps(baseline.to_dict()))
+    baseline = diesel_baseline(say)
     only = {int(x) for x in args.only.split(",")} if args.only else None
     out = selftest(args.n, args.seed, n_null=args.nulls, baseline=baseline, progress=say,
                    only=only)

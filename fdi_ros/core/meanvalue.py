@@ -47,6 +47,78 @@ def _basis(nz: np.ndarray, pz: np.ndarray, degree: int) -> np.ndarray:
     return np.moveaxis(out, 0, -1)
 
 
+def harmonic_basis(nz: np.ndarray, pz: np.ndarray, degree: int, knots: int = 0) -> np.ndarray:
+    """(N, m) functions of the operating point that a pulsation's Fourier coefficients are
+    linear in: monomials of scaled speed ``nz`` and pressure ``pz`` up to ``degree``, or with
+    ``knots`` piecewise-linear "hat" functions of the speed on that many equally spaced knots,
+    each times the powers of the pressure up to ``degree``. The phase of an intake system's
+    pulsation turns with the speed (duct delays, resonances) faster than a low-order
+    polynomial can follow; the hats follow it. Outside the identified speeds the end values
+    hold."""
+    if not knots:
+        return _basis(nz, pz, degree)
+    grid = np.linspace(0.0, 1.0, knots)
+    hat = np.clip(1.0 - np.abs(np.clip(nz, 0.0, 1.0)[:, None] - grid[None, :]) * (knots - 1),
+                  0.0, None)
+    ppow = [np.ones_like(pz)]
+    for _ in range(degree):
+        ppow.append(ppow[-1] * pz)
+    return np.hstack([hat * p[:, None] for p in ppow])
+
+
+def harmonic_regressors(poly: np.ndarray, alpha: np.ndarray, orders: tuple[float, ...]
+                        ) -> np.ndarray:
+    """(N, 2 * len(orders) * m): the basis ``poly`` times cos and sin of every order of the
+    180 deg CA period, order by order."""
+    cols = []
+    for k in orders:
+        th = 2.0 * np.pi * k * alpha / 180.0
+        cols += [poly * np.cos(th)[:, None], poly * np.sin(th)[:, None]]
+    return np.hstack(cols)
+
+
+def pulsation(poly: np.ndarray, alpha: np.ndarray, orders: tuple[float, ...],
+              coef: tuple[float, ...]) -> np.ndarray:
+    """``harmonic_regressors(poly, alpha, orders) @ coef`` without the regressor matrix: per
+    order the coefficient maps ``poly @ a_k``, ``poly @ b_k`` times cos and sin."""
+    k = poly.shape[1]
+    c = np.asarray(coef).reshape(len(orders), 2, k)
+    amp = poly @ c.reshape(-1, k).T  # (N, 2 * orders): a_1, b_1, a_2, b_2, ...
+    out = np.zeros(alpha.shape)
+    for i, order in enumerate(orders):
+        th = 2.0 * np.pi * order * alpha / 180.0
+        out += amp[:, 2 * i] * np.cos(th) + amp[:, 2 * i + 1] * np.sin(th)
+    return out
+
+
+def _alpha(data: Measured) -> np.ndarray:
+    if data.alpha is None:
+        raise ValueError("this model predicts the crank-angle pulsation: the measured data "
+                         "needs a crank angle (alpha)")
+    return np.asarray(data.alpha, float)
+
+
+def segment_smoothed(data: Measured, names: set[str]) -> Measured:
+    """Crank-resolved signals ``names`` averaged over a sliding 180 deg CA window (NaN where
+    the window is not full); data without a crank angle as it is."""
+    if data.alpha is None:
+        return data
+    da = float(np.median(np.diff(data.alpha)))
+    w = int(round(180.0 / da)) if da > 0 else 1
+    if w <= 1:
+        return data
+    sig = dict(data.signals)
+    k = np.ones(w) / w
+    for name in names:
+        x = data[name]
+        sm = np.convolve(x, k, mode="same")
+        sm[: w // 2] = np.nan
+        sm[x.size - (w - 1 - w // 2):] = np.nan
+        sig[name] = sm
+    return Measured(t=data.t, signals=sig, units=dict(data.units), alpha=data.alpha,
+                    segment=data.segment, source=data.source, mapped=data.mapped)
+
+
 @dataclass(frozen=True)
 class SpeedDensityModel:
     """Speed-density air-flow model ``maf = eta_V(n, p) * m_th(n, p, T)``.
@@ -83,6 +155,7 @@ class SpeedDensityModel:
     orders: tuple[float, ...] = ()
     harmonic_degree: int = 2
     harm_coef: tuple[float, ...] = ()
+    harmonic_knots: int = 0
     kind: str = field(default="speed_density", init=False)
 
     def __post_init__(self) -> None:
@@ -90,6 +163,8 @@ class SpeedDensityModel:
             raise ValueError("displacement_l must be > 0")
         if self.degree < 0 or self.degree > 4:
             raise ValueError("degree must be in 0..4")
+        if self.harmonic_knots == 1 or self.harmonic_knots < 0:
+            raise ValueError("harmonic_knots must be 0 (polynomial maps) or >= 2")
 
     # --- the baseline-model interface of the discrepancy analysis -------------------------
     @property
@@ -140,41 +215,21 @@ class SpeedDensityModel:
         The mean-value part of the model must see the mean manifold state, not its pulsation
         (the pulsation of p2 times eta_V, or its derivative, is not an air flow).
         """
-        if data.alpha is None:
-            return data
-        da = float(np.median(np.diff(data.alpha)))
-        w = int(round(180.0 / da)) if da > 0 else 1
-        if w <= 1:
-            return data
-        sig = dict(data.signals)
-        k = np.ones(w) / w
-        for name in set(self.inputs):
-            x = data[name]
-            sm = np.convolve(x, k, mode="same")
-            sm[: w // 2] = np.nan
-            sm[x.size - (w - 1 - w // 2):] = np.nan
-            sig[name] = sm
-        return Measured(t=data.t, signals=sig, units=dict(data.units), alpha=data.alpha,
-                        segment=data.segment, source=data.source, mapped=data.mapped)
+        return segment_smoothed(data, set(self.inputs))
 
     def without_pulsation(self) -> SpeedDensityModel:
         """The same mean-value model without the crank-angle pulsation terms."""
         return SpeedDensityModel(**{**self.to_params(), "orders": (), "harm_coef": ()})
 
+    def _harmonic_basis(self, data: Measured) -> np.ndarray:
+        nz, pz = self._z(data)
+        return harmonic_basis(nz, pz, self.harmonic_degree, self.harmonic_knots)
+
     def harmonic_regressors(self, data: Measured) -> np.ndarray:
         """(N, 2 * len(orders) * n_poly) pulsation regressors (empty without orders)."""
         if not self.orders:
             return np.zeros((data.n_samples, 0))
-        if data.alpha is None:
-            raise ValueError("this model predicts the crank-angle pulsation: the measured data "
-                             "needs a crank angle (alpha)")
-        nz, pz = self._z(data)
-        poly = _basis(nz, pz, self.harmonic_degree)
-        cols = []
-        for k in self.orders:
-            th = 2.0 * np.pi * k * data.alpha / 180.0
-            cols += [poly * np.cos(th)[:, None], poly * np.sin(th)[:, None]]
-        return np.hstack(cols)
+        return harmonic_regressors(self._harmonic_basis(data), _alpha(data), self.orders)
 
     def predict(self, data: Measured) -> dict[str, np.ndarray]:
         data = self._segment_smoothed(data)
@@ -186,21 +241,7 @@ class SpeedDensityModel:
         return {self.channel: m}
 
     def _pulsation(self, data: Measured) -> np.ndarray:
-        """``harmonic_regressors(data) @ harm_coef`` without the regressor matrix: per order
-        the amplitude maps ``poly @ a_k``, ``poly @ b_k`` times cos and sin."""
-        if data.alpha is None:
-            raise ValueError("this model predicts the crank-angle pulsation: the measured data "
-                             "needs a crank angle (alpha)")
-        nz, pz = self._z(data)
-        poly = _basis(nz, pz, self.harmonic_degree)
-        k = poly.shape[1]
-        c = np.asarray(self.harm_coef).reshape(len(self.orders), 2, k)
-        amp = poly @ c.reshape(-1, k).T  # (N, 2 * orders): a_1, b_1, a_2, b_2, ...
-        out = np.zeros(data.n_samples)
-        for i, order in enumerate(self.orders):
-            th = 2.0 * np.pi * order * data.alpha / 180.0
-            out += amp[:, 2 * i] * np.cos(th) + amp[:, 2 * i + 1] * np.sin(th)
-        return out
+        return pulsation(self._harmonic_basis(data), _alpha(data), self.orders, self.harm_coef)
 
     # --- identification and persistence -----------------------------------------------------
     def fit(self, data: Measured | list[Measured]) -> SpeedDensityModel:
@@ -267,7 +308,7 @@ class SpeedDensityModel:
                     volumes_l=tuple(self.volumes_l),
                     derivative_window_s=self.derivative_window_s,
                     orders=tuple(self.orders), harmonic_degree=self.harmonic_degree,
-                    harm_coef=tuple(self.harm_coef))
+                    harm_coef=tuple(self.harm_coef), harmonic_knots=self.harmonic_knots)
 
     def to_dict(self) -> dict[str, Any]:
         d = self.to_params()
@@ -284,4 +325,125 @@ class SpeedDensityModel:
                 d[k] = tuple(float(v) for v in d[k])
         if "storage" in d:
             d["storage"] = tuple(d["storage"])
+        return cls(**d)
+
+
+@dataclass(frozen=True)
+class PulsationMapModel:
+    """The crank-angle pulsation of one measured signal as a map of the operating point.
+
+    ``x(alpha) = xbar + sum_k a_k(n, l) cos(2 pi k alpha / 180) + b_k(n, l) sin(...)``, with
+    ``xbar`` the reading's own mean over a sliding 180 deg CA window and the Fourier
+    coefficient maps linear in :func:`harmonic_basis` of the means of the speed ``n`` and of
+    a ``load`` signal: a residual of the pulsation alone (the mean cancels). It checks
+    explanations the mean-value residuals cannot tell apart: a gain of the reading scales its
+    pulsation, a lag damps it, a dead time shifts it, an error of the load signal moves the
+    prediction, while an error of any other sensor leaves it as it is. The load must not be
+    the reading itself: a gain of the reading would move the prediction with it (the
+    pulsation of a manifold pressure grows about in proportion to the pressure). For an
+    intake manifold pressure the air flow is the load: the cylinders' suction drives the
+    pulsation. Identified by linear least squares on fault-free crank-resolved records; NaN
+    outside the identified speeds and loads (with a margin) and without a crank angle.
+    """
+
+    channel: str = "p2"
+    n: str = "n"
+    load: str = "maf"
+    orders: tuple[float, ...] = (1.0,)
+    harmonic_degree: int = 1
+    harmonic_knots: int = 12
+    margin: float = 0.05
+    n_range: tuple[float, float] = (0.0, 0.0)
+    load_range: tuple[float, float] = (0.0, 0.0)
+    harm_coef: tuple[float, ...] = ()
+    kind: str = field(default="pulsation_map", init=False)
+
+    def __post_init__(self) -> None:
+        if not self.orders:
+            raise ValueError("a pulsation map needs at least one order")
+        if self.channel in (self.n, self.load):
+            raise ValueError(f"the pulsation of {self.channel} cannot be mapped over itself")
+
+    @property
+    def name(self) -> str:
+        return f"{self.channel} pulsation"
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        return (self.n, self.load)
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        return (self.name,)
+
+    def region(self, data: Measured) -> dict[str, np.ndarray]:
+        return {self.n: data[self.n], self.load: data[self.load]}
+
+    def without_pulsation(self) -> None:
+        """Nothing: on segment means the pulsation averages out."""
+        return None
+
+    def _basis(self, sm: Measured, n_range: tuple[float, float],
+               l_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+        nz = (np.asarray(sm[self.n], float) - n_range[0]) / (n_range[1] - n_range[0])
+        pz = (np.asarray(sm[self.load], float) - l_range[0]) / (l_range[1] - l_range[0])
+        out = ((nz < -self.margin) | (nz > 1 + self.margin) | (pz < -self.margin)
+               | (pz > 1 + self.margin) | ~np.isfinite(nz) | ~np.isfinite(pz))
+        return harmonic_basis(np.where(out, 0.0, nz), np.where(out, 0.0, pz),
+                              self.harmonic_degree, self.harmonic_knots), out
+
+    def predict(self, data: Measured) -> dict[str, np.ndarray]:
+        if not self.harm_coef:
+            raise ValueError("the pulsation map is not identified yet (call fit)")
+        if data.alpha is None:
+            return {self.name: np.full(data.n_samples, np.nan)}
+        sm = segment_smoothed(data, {self.n, self.load, self.channel})
+        poly, out = self._basis(sm, self.n_range, self.load_range)
+        x = np.asarray(sm[self.channel], float) + pulsation(poly, _alpha(data), self.orders,
+                                                             self.harm_coef)
+        return {self.name: np.where(out, np.nan, x)}
+
+    def fit(self, data: Measured | list[Measured]) -> PulsationMapModel:
+        recs = data if isinstance(data, list) else [data]
+        if any(r.alpha is None for r in recs):
+            raise ValueError("a pulsation map is identified on crank-resolved records")
+        sms = [segment_smoothed(r, {self.n, self.load, self.channel}) for r in recs]
+        ranges = []
+        for name in (self.n, self.load):
+            x = np.concatenate([np.asarray(s[name], float) for s in sms])
+            x = x[np.isfinite(x)]
+            if not x.size or not x.max() > x.min():
+                raise ValueError(f"identification data must vary in {name}")
+            ranges.append((float(x.min()), float(x.max())))
+        rows, rhs = [], []
+        for r, s in zip(recs, sms):
+            poly, out = self._basis(s, ranges[0], ranges[1])
+            A = harmonic_regressors(poly, _alpha(r), self.orders)
+            y = np.asarray(r[self.channel], float) - np.asarray(s[self.channel], float)
+            ok = ~out & np.isfinite(y) & np.isfinite(A).all(axis=1)
+            rows.append(A[ok])
+            rhs.append(y[ok])
+        A, y = np.concatenate(rows), np.concatenate(rhs)
+        if A.shape[0] < 10 * A.shape[1]:
+            raise ValueError(f"too few valid samples ({A.shape[0]}) to identify the pulsation "
+                             f"of {self.channel}")
+        sol, *_ = np.linalg.lstsq(A, y, rcond=None)
+        return PulsationMapModel(**{**self.to_params(), "n_range": ranges[0],
+                                    "load_range": ranges[1],
+                                    "harm_coef": tuple(float(v) for v in sol)})
+
+    def to_params(self) -> dict[str, Any]:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__ if k != "kind"}
+
+    def to_dict(self) -> dict[str, Any]:
+        d = {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.to_params().items()}
+        d["type"] = self.kind
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> PulsationMapModel:
+        d = {k: v for k, v in d.items() if k != "type"}
+        for k in ("orders", "n_range", "load_range", "harm_coef"):
+            if k in d:
+                d[k] = tuple(float(v) for v in d[k])
         return cls(**d)

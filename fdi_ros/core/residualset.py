@@ -308,6 +308,24 @@ class ResidualSet:
     def leaks(self) -> tuple[LeakSpec, ...]:
         return tuple(getattr(self.models[0], "leaks", ()))
 
+    @property
+    def orders(self) -> tuple[float, ...]:
+        """The crank-angle orders any member predicts (empty: mean-value relations only)."""
+        return tuple(sorted({o for m in self.models for o in getattr(m, "orders", ())}))
+
+    def without_pulsation(self) -> ResidualSet:
+        """The relations on segment means: every member without its pulsation terms, the
+        members that predict nothing but a pulsation left out."""
+        keep = []
+        for m in self.models:
+            if not getattr(m, "orders", ()):
+                keep.append(m)
+            elif (mean := m.without_pulsation()) is not None:
+                keep.append(mean)
+        names = {_name(m) for m in keep}
+        return ResidualSet(models=tuple(keep),
+                           checks=tuple(c for c in self.checks if c in names))
+
     def region(self, data: Measured) -> dict[str, np.ndarray]:
         return dict(self.models[0].region(data))
 
@@ -332,11 +350,12 @@ class ResidualSet:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ResidualSet:
-        from fdi_ros.core.meanvalue import SpeedDensityModel
+        from fdi_ros.core.meanvalue import PulsationMapModel, SpeedDensityModel
 
         kinds: dict[str, Any] = {"speed_density": SpeedDensityModel,
                                  "throttle_flow": ThrottleFlowModel,
-                                 "pressure_map": PressureMapModel}
+                                 "pressure_map": PressureMapModel,
+                                 "pulsation_map": PulsationMapModel}
         unknown = sorted({str(m.get("type")) for m in d["models"]} - set(kinds))
         if unknown:
             raise ValueError(f"residual set: unknown model types {unknown} (known: "

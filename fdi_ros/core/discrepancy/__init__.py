@@ -98,8 +98,14 @@ def pulsation_views(data: Measured, model: Any) -> dict[str, ChannelContext]:
         ctx.pulse = seg
         ctx.measured = ctx.signal
         ctx.quantum = 0.005  # lags and dead times to 0.5 %: a check, not a fit
-        out[f"{ch} (pulsation)"] = ctx
+        out[ch if ch.endswith("pulsation") else f"{ch} (pulsation)"] = ctx
     return out
+
+
+def _without_checks(ctxs: dict[str, ChannelContext], model: Any) -> dict[str, ChannelContext]:
+    """The residuals that propose explanations: those the model marks as checks left out."""
+    checks = set(getattr(model, "checks", ()))
+    return {k: c for k, c in ctxs.items() if k not in checks}
 
 
 def _discover(data: Measured, model: Any, *, config: DiscrepancyConfig | None = None,
@@ -143,7 +149,7 @@ def _discover(data: Measured, model: Any, *, config: DiscrepancyConfig | None = 
 
     res_1 = None
     if stage1:
-        res_1 = analyse(build_contexts(data, model),
+        res_1 = analyse(_without_checks(build_contexts(data, model), model),
                         config=replace(cfg, effects=stage1, max_findings=1),
                         progress=progress)
     res_a = analyse(on_top(build_contexts(means, mean_model, sensors=True), res_1),
@@ -158,7 +164,7 @@ def _discover(data: Measured, model: Any, *, config: DiscrepancyConfig | None = 
         alone = analyse(build_contexts(means, mean_model, sensors=True), config=cfg_a,
                         progress=progress, secondary=pulsation_views(data, model))
         if alone.findings:
-            again = analyse(on_top(build_contexts(data, model), alone),
+            again = analyse(on_top(_without_checks(build_contexts(data, model), model), alone),
                             config=replace(cfg, effects=stage1, max_findings=1),
                             progress=progress)
             if not again.findings:
@@ -171,7 +177,7 @@ def _discover(data: Measured, model: Any, *, config: DiscrepancyConfig | None = 
     if not stage3:
         return _tag_views(res_a), ExtendedModel(baseline=model, chains=res_a.chains,
                                                 source=data.source)
-    ctx_b = build_contexts(data, model)
+    ctx_b = _without_checks(build_contexts(data, model), model)
     for ch, ctx in ctx_b.items():
         ctx.yhat = apply_chain(ctx, res_a.chains.get(ch, []))
     res_b = analyse(ctx_b, config=replace(cfg, effects=stage3), progress=progress)

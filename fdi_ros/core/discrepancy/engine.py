@@ -120,6 +120,8 @@ class Candidate(_Scored):
     mse_blocks: np.ndarray = field(repr=False)
     residuals: tuple[str, ...] = ()  # the residuals it moves
     shown_on: str = ""  # the residual whose held-out RMSE the record reports
+    # mean held-out score on every residual it was scored on, in units of its noise level
+    per_residual: dict[str, float] = field(default_factory=dict, repr=False)
 
 
 @dataclass(frozen=True)
@@ -629,7 +631,9 @@ def _candidate(views: dict[str, _Channel], h: Hypothesis, st: _Step, sc: _Scorin
                      rmse_before=st.rmse_b[show], rmse_after=rmse_a,
                      gain_pct=100.0 * (1.0 - rmse_a / st.rmse_b[show]),
                      p_value=paired_p(score_b, score_a), p_adjusted=1.0, p_dm=p_dm,
-                     mse_blocks=score_a, residuals=tuple(sorted(mse_a)), shown_on=show)
+                     mse_blocks=score_a, residuals=tuple(sorted(mse_a)), shown_on=show,
+                     per_residual={v: float(np.nanmean(per_view[v]) / level[v])
+                                   for v in views})
 
 
 def _score_all(views: dict[str, _Channel], hs: list[Hypothesis], st: _Step,
@@ -717,9 +721,16 @@ def _alternatives(views: dict[str, _Channel], chain: list[Hypothesis],
     def gain(cand: Candidate) -> float:
         return 1.0 - float(np.sqrt(max(float(np.nanmean(cand.mse_blocks)), 0.0) / before))
 
+    def told_apart(cand: Candidate) -> bool:
+        # a check (a residual that only judges the leading explanations, an independent
+        # witness) where what either leaves differs by more than its noise level: the data
+        # there say which one it is, however close the joint gains are
+        return any(abs(cand.per_residual.get(v, np.nan) - choice.per_residual.get(v, np.nan))
+                   > 1.0 for v in choice.per_residual if v in views and views[v].secondary)
+
     best = gain(choice) if before > 0 else 0.0
     close = [(h, cand) for h, cand in ranked if cand.p_adjusted < alpha and best > 0
-             and gain(cand) >= (1.0 - PRACTICAL_TIE) * best]
+             and gain(cand) >= (1.0 - PRACTICAL_TIE) * best and not told_apart(cand)]
     for h, cand in sorted(close, key=lambda hc: (hc[1].n_params,
                                                  float(np.nanmean(hc[1].mse_blocks)))):
         if (cand.effect, cand.channel) not in seen and len(alternatives) < max_ties:

@@ -97,13 +97,21 @@ def diesel_baseline(seed: int = 1000, *, runs: int = 3, duration_s: float = 90.0
 
 
 def diesel_model_template():
-    from fdi_ros.core.meanvalue import SpeedDensityModel
+    """The diesel baseline before identification: the speed-density air flow with the MAF's
+    crank-angle pulsation, and the boost pressure's pulsation over speed and air flow as a check
+    (a p2 sensor's gain scales it, a lag damps it, a MAF error moves its prediction; a T2
+    error leaves it alone)."""
+    from fdi_ros.core.meanvalue import PulsationMapModel, SpeedDensityModel
+    from fdi_ros.core.residualset import ResidualSet
 
-    return SpeedDensityModel(displacement_l=DIESEL_DISPLACEMENT_L, n="n", p="p2", T="T2",
+    flow = SpeedDensityModel(displacement_l=DIESEL_DISPLACEMENT_L, n="n", p="p2", T="T2",
                              channel="maf", flow_scale=3600.0, degree=3, storage=("p2",),
-                             derivative_window_s=0.05, orders=(1.0, 2.0, 3.0),
-                             harmonic_degree=5, leak_p_amb=101325.0, leak_T_amb=298.0,
+                             derivative_window_s=0.05, orders=(1.0,), harmonic_degree=1,
+                             harmonic_knots=16, leak_p_amb=101325.0, leak_T_amb=298.0,
                              leak_cd=0.65)
+    boost = PulsationMapModel(channel="p2", n="n", load="maf", orders=(1.0, 2.0),
+                              harmonic_degree=1, harmonic_knots=16)
+    return ResidualSet(models=(flow, boost), checks=(boost.name,))
 
 
 # ----------------------------------------------------------------------------- hidden effects

@@ -268,10 +268,16 @@ def run_spec(spec: dict, baseline, *, duration_s: float = 60.0) -> CaseResult:
                       seconds=time.perf_counter() - t0)
 
 
+def own_channels(baseline) -> tuple[str, ...]:
+    """The residuals an effect is hidden on: the baseline's channels but its checks (a
+    check's signal is a sensor the main residuals read)."""
+    return tuple(c for c in baseline.channels if c not in getattr(baseline, "checks", ()))
+
+
 def run_case(index: int, rng: np.random.Generator, baseline, effect: str | None, *,
              duration_s: float = 60.0) -> CaseResult:
     """Draw, hide, analyse and judge one case."""
-    spec = draw_spec(index, rng, tuple(baseline.channels), effect)
+    spec = draw_spec(index, rng, own_channels(baseline), effect)
     return run_spec(spec, baseline, duration_s=duration_s)
 
 
@@ -326,7 +332,7 @@ def run_selftest(n: int, seed: int, *, n_null: int | None = None, baseline=None,
     rng.shuffle(kinds)
     cases = []
     for i, kind in enumerate(kinds):
-        spec = draw_spec(i, rng, tuple(baseline.channels), kind)
+        spec = draw_spec(i, rng, own_channels(baseline), kind)
         if only is not None and i not in only:
             continue
         c = run_spec(spec, baseline, duration_s=duration_s)

@@ -96,3 +96,12 @@ def turbofan_bank() -> Path:
 @pytest.fixture(scope="session")
 def diesel_reference_dir(diesel_bank: Path) -> Path:
     return ROOT / "build" / "models" / "diesel"
+
+
+@pytest.fixture(scope="session")
+def discrepancy_baseline():
+    """The diesel discrepancy baseline identified on three fault-free plant runs (one fit for
+    every module that analyses hidden effects)."""
+    from fdi_ros.plants.diesel import discrepancy_scenarios as sc
+
+    return sc.diesel_baseline(seed=1000, runs=3, duration_s=90.0)

@@ -19,8 +19,8 @@ from fdi_ros.plants.diesel import discrepancy_scenarios as sc
 
 
 @pytest.fixture(scope="module")
-def baseline():
-    return sc.diesel_baseline(seed=1000, runs=3, duration_s=90.0)
+def baseline(discrepancy_baseline):
+    return discrepancy_baseline
 
 
 def _run(baseline, effect: str, seed: int):

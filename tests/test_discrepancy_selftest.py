@@ -24,8 +24,8 @@ from fdi_ros.plants.diesel.discrepancy_selftest import (
 
 
 @pytest.fixture(scope="module")
-def baseline():
-    return sc.diesel_baseline(seed=1000, runs=3, duration_s=90.0)
+def baseline(discrepancy_baseline):
+    return discrepancy_baseline
 
 
 def test_random_cases_found_and_nulls_clean(baseline):

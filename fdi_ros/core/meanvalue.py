@@ -91,6 +91,22 @@ def pulsation(poly: np.ndarray, alpha: np.ndarray, orders: tuple[float, ...],
     return out
 
 
+def stacked_lstsq(pairs: list[tuple[np.ndarray, np.ndarray]], what: str
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Linear least squares over the finite rows of several records' ``(A, y)``; at least
+    ten rows per unknown. Returns the solution and the stacked ``A``, ``y`` it was fitted on."""
+    rows, rhs = [], []
+    for A, y in pairs:
+        ok = np.isfinite(A).all(axis=1) & np.isfinite(y)
+        rows.append(A[ok])
+        rhs.append(y[ok])
+    A, y = np.concatenate(rows), np.concatenate(rhs)
+    if A.shape[0] < 10 * A.shape[1]:
+        raise ValueError(f"too few valid samples ({A.shape[0]}) to identify {what}")
+    sol, *_ = np.linalg.lstsq(A, y, rcond=None)
+    return sol, A, y
+
+
 def _alpha(data: Measured) -> np.ndarray:
     if data.alpha is None:
         raise ValueError("this model predicts the crank-angle pulsation: the measured data "
@@ -277,20 +293,15 @@ class SpeedDensityModel:
                                      "p_range": p_range, "coef": (1.0,),
                                      "volumes_l": (0.0,) * len(self.storage),
                                      "harm_coef": ()})
-        rows, rhs = [], []
+        pairs = []
         for r in recs:
             nz, pz = proto._z(r)
             mth = proto.m_th(r)
-            A = np.hstack([_basis(nz, pz, self.degree) * mth[:, None],
-                           self.filling_regressors(r), proto.harmonic_regressors(r)])
-            y = r[self.channel]
-            ok = np.isfinite(A).all(axis=1) & np.isfinite(y)
-            rows.append(A[ok])
-            rhs.append(y[ok])
-        A, y = np.concatenate(rows), np.concatenate(rhs)
-        if A.shape[0] < 10 * A.shape[1]:
-            raise ValueError(f"too few valid samples ({A.shape[0]}) to identify eta_V")
-        sol, *_ = np.linalg.lstsq(A, y, rcond=None)
+            pairs.append((np.hstack([_basis(nz, pz, self.degree) * mth[:, None],
+                                     self.filling_regressors(r),
+                                     proto.harmonic_regressors(r)]),
+                          np.asarray(r[self.channel], float)))
+        sol, _, _ = stacked_lstsq(pairs, "eta_V")
         k = _basis(np.zeros(1), np.zeros(1), self.degree).shape[1]
         kv = k + len(self.storage)
         return SpeedDensityModel(**{**self.to_params(), "n_range": n_range, "p_range": p_range,
@@ -415,19 +426,13 @@ class PulsationMapModel:
             if not x.size or not x.max() > x.min():
                 raise ValueError(f"identification data must vary in {name}")
             ranges.append((float(x.min()), float(x.max())))
-        rows, rhs = [], []
+        pairs = []
         for r, s in zip(recs, sms):
             poly, out = self._basis(s, ranges[0], ranges[1])
-            A = harmonic_regressors(poly, _alpha(r), self.orders)
             y = np.asarray(r[self.channel], float) - np.asarray(s[self.channel], float)
-            ok = ~out & np.isfinite(y) & np.isfinite(A).all(axis=1)
-            rows.append(A[ok])
-            rhs.append(y[ok])
-        A, y = np.concatenate(rows), np.concatenate(rhs)
-        if A.shape[0] < 10 * A.shape[1]:
-            raise ValueError(f"too few valid samples ({A.shape[0]}) to identify the pulsation "
-                             f"of {self.channel}")
-        sol, *_ = np.linalg.lstsq(A, y, rcond=None)
+            pairs.append((harmonic_regressors(poly, _alpha(r), self.orders),
+                          np.where(out, np.nan, y)))
+        sol, _, _ = stacked_lstsq(pairs, f"the pulsation of {self.channel}")
         return PulsationMapModel(**{**self.to_params(), "n_range": ranges[0],
                                     "load_range": ranges[1],
                                     "harm_coef": tuple(float(v) for v in sol)})

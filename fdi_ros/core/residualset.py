@@ -27,6 +27,7 @@ import numpy as np
 
 from fdi_ros.core.constants import R_AIR
 from fdi_ros.core.discrepancy.context import LeakSpec, orifice_flux, smooth_derivative
+from fdi_ros.core.meanvalue import stacked_lstsq
 from fdi_ros.core.measured import Measured
 
 
@@ -162,17 +163,11 @@ class ThrottleFlowModel(_Saved):
     def fit(self, data: Measured | list[Measured]) -> ThrottleFlowModel:
         recs = data if isinstance(data, list) else [data]
         (lo, hi), = _ranges(recs, (self.position,))
-        rows, rhs = [], []
+        pairs = []
         for r in recs:
             A, bad = self._regressors(r, lo, hi)
-            y = np.asarray(r[self.channel], float)
-            ok = np.isfinite(A).all(axis=1) & np.isfinite(y) & ~bad
-            rows.append(A[ok])
-            rhs.append(y[ok])
-        A, y = np.concatenate(rows), np.concatenate(rhs)
-        if A.shape[0] < 10 * A.shape[1]:
-            raise ValueError(f"too few valid samples ({A.shape[0]}) to identify the throttle")
-        sol, *_ = np.linalg.lstsq(A, y, rcond=None)
+            pairs.append((A, np.where(bad, np.nan, np.asarray(r[self.channel], float))))
+        sol, _, _ = stacked_lstsq(pairs, "the throttle")
         k = self.degree + 1
         return ThrottleFlowModel(**{**self.to_params(), "coef": tuple(float(v) for v in sol[:k]),
                                     "volume_l": float(sol[k]) if self.storage else 0.0,
@@ -236,19 +231,13 @@ class PressureMapModel(_Saved):
         lags = [0.0] + (list(np.geomspace(0.05, self.max_lag_s, 24)) if self.max_lag_s > 0
                         else [])
         for lag in lags:
-            rows, rhs = [], []
+            pairs = []
             for r in recs:
                 A, out = self._basis(r, ranges, lag)
                 y = np.log(np.asarray(r[self.channel], float)
                            / np.asarray(r[self.reference], float))
-                ok = np.isfinite(A).all(axis=1) & np.isfinite(y) & ~out
-                rows.append(A[ok])
-                rhs.append(y[ok])
-            A, y = np.concatenate(rows), np.concatenate(rhs)
-            if A.shape[0] < 10 * A.shape[1]:
-                raise ValueError(f"too few valid samples ({A.shape[0]}) to identify "
-                                 f"{self.channel}")
-            sol, *_ = np.linalg.lstsq(A, y, rcond=None)
+                pairs.append((A, np.where(out, np.nan, y)))
+            sol, A, y = stacked_lstsq(pairs, self.channel)
             sse = float(np.sum((y - A @ sol) ** 2))
             if best is None or sse < best[0]:
                 best = (sse, float(lag), sol)

@@ -331,3 +331,31 @@ def test_input_dependence_does_not_extrapolate_a_square_without_bound():
     bound = sum(abs(c) for c in p["coef"]) * (hi - lo + max(abs(lo), abs(hi))) ** 2 + 10
     assert np.all(np.abs(corr) < bound)
     assert np.allclose(corr[train], (eff.apply(ctx, yhat, p) - yhat)[train])
+
+
+def test_a_warm_up_is_named_itself_not_its_slope():
+    """The residual follows a warm-up temperature that settles exponentially; its slope is
+    then exactly linear in it (d/dt T = (T_end - T) / tau), so the two explain the residual
+    alike. The measured temperature is named, its slope reported beside it as a tie. Time
+    constant, size and sign drawn at test time."""
+    from fdi_ros.core.discrepancy.context import smooth_derivative
+
+    seed = int(np.random.SeedSequence().entropy % 2**31)
+    rng = np.random.default_rng(seed)
+    t = np.arange(0, 300, 0.05)
+    tau = rng.uniform(60.0, 200.0)
+    warm = 330.0 - rng.uniform(20.0, 50.0) * np.exp(-t / tau)
+    yhat = _signal(rng, t)
+    z = (warm - warm.mean()) / warm.std()
+    coef = rng.choice([-1.0, 1.0]) * rng.uniform(2.0, 5.0)
+    y = yhat + coef * z + rng.normal(0, 0.3, t.size)
+    seg = np.zeros(t.size, dtype=int)
+    cols = {"T_oil": warm, "d/dt T_oil": smooth_derivative(warm, t, seg, 0.25)}
+    res = analyse({"y": _ctx(y, yhat, t, columns=cols)},
+                  config=DiscrepancyConfig(effects=("offset", "gain_error", "drift",
+                                                    "input_dependence")))
+    top = res.findings[0]
+    why = (seed, top.label, [a["label"] for a in top.alternatives])
+    assert top.label == "input_dependence on T_oil", why
+    assert top.params["coef"][0] == pytest.approx(coef, rel=0.1), why
+    assert "input_dependence on d/dt T_oil" in [a["label"] for a in top.alternatives], why

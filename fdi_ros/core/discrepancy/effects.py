@@ -988,8 +988,11 @@ def candidates(ctx: ChannelContext, *, effects: tuple[str, ...] = CATALOGUE,
         elif e == "dead_time":
             out.append(DeadTime())
         elif e == "input_dependence":
-            out += [InputDependence(column=c, degree=1 if c.startswith("d/dt ") else 2)
-                    for c in ctx.columns]
+            # a measured signal: linear, and linear with a square (the linear case nests in
+            # it: parsimony names it when the square adds nothing held-out); a slope: linear
+            for c in ctx.columns:
+                out += [InputDependence(column=c, degree=1)] + (
+                    [] if c.startswith("d/dt ") else [InputDependence(column=c, degree=2)])
         elif e == "leak" and ctx.leak_q is not None:
             out += [Leak()] + ([Leak(onset=True), Leak(piecewise=True)] if onset else [])
         elif e == "missing_harmonic" and ctx.alpha is not None:

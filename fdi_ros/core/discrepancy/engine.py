@@ -43,7 +43,7 @@ import numpy as np
 from scipy import stats
 
 from fdi_ros.core.discrepancy.context import ChannelContext
-from fdi_ros.core.discrepancy.effects import CATALOGUE, Effect, SensorError
+from fdi_ros.core.discrepancy.effects import CATALOGUE, Effect, InputDependence, SensorError
 from fdi_ros.core.discrepancy.joint import Hypothesis, fit_hypothesis, hypotheses
 from fdi_ros.core.discrepancy.ties import tie_reason
 
@@ -314,10 +314,22 @@ def _nests(big: Hypothesis, small: Hypothesis) -> bool:
     if big.effect != small.effect or big.carrier != small.carrier or getattr(
             a, "sensor", "") != getattr(b, "sensor", ""):
         return False
+    if big.effect == "input_dependence" and not getattr(a, "sensor", ""):
+        # linear in a column < linear with a square of the same column
+        return (getattr(a, "column", None) == getattr(b, "column", "")
+                and getattr(b, "degree", 2) < getattr(a, "degree", 2))
     if getattr(a, "piecewise", False):
         return not getattr(b, "piecewise", True)
     return getattr(a, "onset", False) and not getattr(b, "onset", True) and not getattr(
         b, "piecewise", True)
+
+
+def _linear_case(h: Hypothesis) -> bool:
+    """A linear dependence on a measured signal, tested beside (and nested in) the same
+    dependence with a square: the shape is counted once in the multiplicity correction."""
+    lead = _lead(h)
+    return (isinstance(lead, InputDependence) and lead.degree == 1
+            and not lead.column.startswith("d/dt "))
 
 
 def _finite_diff(blocks: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -389,13 +401,26 @@ def _one_se_choice(scored: list[tuple[Hypothesis, Candidate]], alpha: float,
                   and paired_p(c.mse_blocks, best[1].mse_blocks) >= alpha]
         if timing:
             best = min(timing, key=lambda hc: np.nanmean(hc[1].mse_blocks))
+        else:
+            # the slope of a slowly settling quantity is the quantity itself (an exponential
+            # warm-up: d/dt T = (T_end - T) / tau): unless it is significantly worse, the
+            # measured signal is named, its slope stays among the ties
+            itself = [(h, c) for h, c in scored if h.effect == "input_dependence"
+                      and getattr(_lead(h), "column", "") == column[5:]
+                      and h.carrier == best[0].carrier and c.p_adjusted < alpha
+                      and paired_p(c.mse_blocks, best[1].mse_blocks) >= alpha]
+            if itself:
+                best = min(itself, key=lambda hc: np.nanmean(hc[1].mse_blocks))
     if _time_varying(_lead(best[0])):
         # a change over time is accepted only if no measured column explains the same
         # residual: a dependence on a measured signal (few parameters, predicts new data)
-        # beats a drift or a piecewise-in-time fit within one standard error of it
-        measured = [(h, c) for h, c in scored if h.effect == "input_dependence"
-                    and h.n_params <= best[0].n_params and c.p_adjusted < alpha
-                    and within_one_se(c)]
+        # beats a drift or a piecewise-in-time fit within one standard error of it, and so
+        # does an offset in a region of the measured operating point (a piecewise fit that
+        # follows the visits to that region needs a change time for each)
+        measured = [(h, c) for h, c in scored if (
+                        (h.effect == "input_dependence" and h.n_params <= best[0].n_params)
+                        or h.effect == "local_region")
+                    and c.p_adjusted < alpha and within_one_se(c)]
         if measured:
             return min(measured, key=lambda hc: np.nanmean(hc[1].mse_blocks))
     eligible = [best]
@@ -685,7 +710,14 @@ def _alternatives(views: dict[str, _Channel], chain: list[Hypothesis],
     alternatives: list[dict[str, Any]] = []
     full: dict[str, np.ndarray] | None = None
     oks = {v: c.ok for v, c in views.items()}
-    seen = {(choice.effect, choice.channel)}
+
+    def kind(h: Hypothesis | None, cand: Candidate) -> tuple[str, str, str]:
+        # variants of one explanation share this (always on, after an onset, piecewise);
+        # a dependence on another column is another explanation
+        return (cand.effect, cand.channel, str(getattr(_lead(h), "column", "")) if h else "")
+
+    chosen = next((h for h, c in scored if c is choice), None)
+    seen = {kind(chosen, choice)}
     ranked = sorted(scored, key=lambda hc: float(np.nanmean(hc[1].mse_blocks)))
 
     def add(h: Hypothesis, cand: Candidate, basis: str) -> None:
@@ -698,11 +730,11 @@ def _alternatives(views: dict[str, _Channel], chain: list[Hypothesis],
                  "params": params, "residuals": list(cand.residuals)}
         alt_d.update(tie_reason(choice, cand, residual, basis))
         alternatives.append(alt_d)
-        seen.add((cand.effect, cand.channel))
+        seen.add(kind(h, cand))
 
     for h, cand in ranked:
-        if (cand.effect, cand.channel) in seen:
-            continue  # one alternative per effect and channel: its best variant
+        if kind(h, cand) in seen:
+            continue  # one alternative per effect, channel and column: its best variant
         if not (cand.gain_pct > 0 and float(np.nanmean(cand.mse_blocks)) < before):
             # worse than the model as it is: no explanation at all (one block it cannot
             # predict puts the mean within one standard error of anything)
@@ -733,7 +765,7 @@ def _alternatives(views: dict[str, _Channel], chain: list[Hypothesis],
              and gain(cand) >= (1.0 - PRACTICAL_TIE) * best and not told_apart(cand)]
     for h, cand in sorted(close, key=lambda hc: (hc[1].n_params,
                                                  float(np.nanmean(hc[1].mse_blocks)))):
-        if (cand.effect, cand.channel) not in seen and len(alternatives) < max_ties:
+        if kind(h, cand) not in seen and len(alternatives) < max_ties:
             add(h, cand, f"held-out RMS gain {100 * gain(cand):.1f} % against "
                          f"{100 * best:.1f} %: within {PRACTICAL_TIE:.0%} of it")
     return alternatives
@@ -817,7 +849,8 @@ def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
         # sensor's error is one more carrier of a shape the channel's own candidates already
         # test (its residual following the model's sensitivity to that sensor), a question
         # of attribution among explanations rather than one more chance of a false discovery
-        m = max(1, sum(not h.signal or h.carrier in measured for h, _ in scored))
+        m = max(1, sum((not h.signal or h.carrier in measured) and not _linear_case(h)
+                       for h, _ in scored))
         scored = [(h, replace(c, p_adjusted=min(1.0, c.p_value * m))) for h, c in scored]
         if step == 0:
             table.extend(c for _, c in scored)
@@ -1006,8 +1039,11 @@ def _refit(views: dict[str, _Channel], chain: list[Hypothesis], findings: list[F
 def _conclude(findings: list[Finding], table: list[Candidate],
               summary: dict[str, dict[str, Any]], alpha: float = 0.05
               ) -> tuple[list[Finding], str, str, bool]:
-    """Findings ranked, the verdict and its message, and whether any channel was analysed."""
-    findings.sort(key=lambda f: -f.gain_pct)
+    """Findings ranked, the verdict and its message, and whether any channel was analysed.
+
+    The findings keep the order they were chosen in: each step's explanation was the best
+    over every residual at once, and a later one explains what the earlier ones left (its
+    held-out gain is of that remainder, not comparable with the first's)."""
     findings = [replace(f, rank=i + 1) for i, f in enumerate(findings)]
     table.sort(key=lambda c: -c.gain_pct)
     verdict, msg = _verdict(findings, table, alpha)
@@ -1117,10 +1153,14 @@ def merge_results(a: DiscrepancyResult, b: DiscrepancyResult, *, b_suffix: str,
                   b_channels: bool = True) -> DiscrepancyResult:
     """One result from two analyses (e.g. mean-value and crank-resolved views of a channel).
 
-    Findings are re-ranked by held-out gain; chains are concatenated per channel (``b``'s
-    extensions act on top of ``a``'s); ``b``'s channel summaries get ``b_suffix``.
+    Findings are merged by held-out gain, each analysis' own in the order they were chosen
+    (:func:`_conclude`); chains are concatenated per channel (``b``'s extensions act on top of
+    ``a``'s); ``b``'s channel summaries get ``b_suffix``.
     """
-    findings = sorted(a.findings + b.findings, key=lambda f: -f.gain_pct)
+    qa, qb, findings = list(a.findings), list(b.findings), []
+    while qa or qb:
+        take_a = bool(qa) and (not qb or qa[0].gain_pct >= qb[0].gain_pct)
+        findings.append((qa if take_a else qb).pop(0))
     findings = [Finding(**{**f.__dict__, "rank": i + 1}) for i, f in enumerate(findings)]
     chains = {ch: list(a.chains.get(ch, [])) + list(b.chains.get(ch, []))
               for ch in set(a.chains) | set(b.chains)}

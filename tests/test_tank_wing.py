@@ -132,6 +132,10 @@ def test_tank_as_a_live_two_node_graph(tmp_path):
                                    lambda m: truth.append(msgs.to_fault_event(m)), LATCHED_QOS)
         inject = h.node.create_publisher(FaultMsg, "/fdi/fault_inject", LATCHED_QOS)
         h.spin_until(lambda: feats, 60.0, "the first tank features", procs)
+        # the plant reads injections as a volatile reader (nothing replayed into a restarted
+        # plant): a request sent before its reader matched this writer is not delivered
+        h.spin_until(lambda: inject.get_subscription_count() >= 1, 60.0,
+                     "the plant's fault-injection reader", procs)
         inject.publish(msgs.MessageFactory("rclpy").fault_event(
             FaultEvent(t=ONSET, fault="sensor_offset", size=OFFSET, size_unit="m")))
         h.spin_until(lambda: truth, 30.0, "the fault truth of the injected offset", procs)

@@ -129,7 +129,8 @@ def _evidence_figure(plt: Any, out: Path, result: DiscrepancyResult
     ax[1].set_ylabel("runner-up - top")
     ax[1].set_xlabel("held-out block (in time order)")
     ax[0].set_title("Evidence: the top finding against the best other explanation, block by "
-                    "block" + (" (scored on every residual it moves)" if joint else ""))
+                    "block" + ("\n(scored on every residual it moves)" if joint else ""),
+                    fontsize=10)
     fig.tight_layout()
     fig.savefig(out / "evidence_top_vs_runner_up.png", dpi=90)
     plt.close(fig)

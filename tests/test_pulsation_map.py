@@ -10,9 +10,9 @@ import pytest
 
 from fdi_ros.core.discrepancy import discover
 from fdi_ros.core.discrepancy.model import baseline_from_dict
-from fdi_ros.core.meanvalue import PulsationMapModel, harmonic_basis
+from fdi_ros.core.meanvalue import harmonic_basis
 from fdi_ros.core.measured import Measured, segments_from_gaps
-from fdi_ros.core.residualset import ResidualSet
+from fdi_ros.core.residualset import PulsationMapModel, ResidualSet
 
 
 def test_hats_interpolate_linearly_between_knots():

@@ -36,7 +36,7 @@ BASELINES: Kinds[Any] = Kinds("baseline model",
                               {"speed_density": "fdi_ros.core.meanvalue:SpeedDensityModel",
                                "throttle_flow": "fdi_ros.core.residualset:ThrottleFlowModel",
                                "pressure_map": "fdi_ros.core.residualset:PressureMapModel",
-                               "pulsation_map": "fdi_ros.core.meanvalue:PulsationMapModel",
+                               "pulsation_map": "fdi_ros.core.residualset:PulsationMapModel",
                                "residual_set": "fdi_ros.core.residualset:ResidualSet"})
 
 

@@ -101,8 +101,8 @@ def diesel_model_template():
     crank-angle pulsation, and the boost pressure's pulsation over speed and air flow as a check
     (a p2 sensor's gain scales it, a lag damps it, a MAF error moves its prediction; a T2
     error leaves it alone)."""
-    from fdi_ros.core.meanvalue import PulsationMapModel, SpeedDensityModel
-    from fdi_ros.core.residualset import ResidualSet
+    from fdi_ros.core.meanvalue import SpeedDensityModel
+    from fdi_ros.core.residualset import PulsationMapModel, ResidualSet
 
     flow = SpeedDensityModel(displacement_l=DIESEL_DISPLACEMENT_L, n="n", p="p2", T="T2",
                              channel="maf", flow_scale=3600.0, degree=3, storage=("p2",),

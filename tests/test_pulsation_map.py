@@ -121,3 +121,24 @@ def test_sensor_gains_named_on_their_own_sensor(baseline, hidden):
     if hidden == "p2":
         assert top.effect == "gain_error" and not any(c == "T2" for _, c in tied), why
 
+
+def test_mean_value_data_analysed_with_a_pulsating_baseline(baseline):
+    """Data without a crank angle (e.g. 20 Hz logger means) against the diesel baseline,
+    whose relations predict pulsations: the mean-value relation is compared (the analysis
+    used to refuse such data), and a MAF gain drawn at test time is found."""
+    from fdi_ros.core.measured import segment_means
+    from fdi_ros.plants.diesel import discrepancy_scenarios as sc
+
+    seed = secrets.randbelow(2**31)
+    rng = np.random.default_rng(seed)
+    g = float(np.exp(rng.uniform(np.log(1.04), np.log(1.12))))
+    g = g if rng.uniform() < 0.5 else 1.0 / g
+    data = segment_means(sc.hide(sc.plant_record(int(rng.integers(2000, 10**6)),
+                                                 profile_seed=int(rng.integers(10**6))),
+                                 "gain_error", {"gain": g}, channel="maf"))
+    assert data.alpha is None
+    res, ext = discover(data, baseline)
+    top = res.findings[0]
+    assert top.channel == "maf" and top.effect == "gain_error", (seed, g, top.label)
+    assert top.params["gain"] == pytest.approx(g, rel=0.3 * abs(g - 1.0)), (seed, g)
+    assert ext.baseline is baseline  # the extended model keeps the pulsations for crank data

@@ -127,9 +127,13 @@ def _discover(data: Measured, model: Any, *, config: DiscrepancyConfig | None = 
         # crank-resolved data, mean-value model: compare the means of the 180 deg CA segments
         data, view = segment_means(data), "segment means"
     if data.alpha is None or not getattr(model, "orders", ()):
-        ctxs = build_contexts(data, model, sensors=True)
+        # mean-value data (no crank angle) and a pulsating model: the pulsation terms average
+        # out, the mean-value relations are compared (the extended model keeps them all, as
+        # ExtendedModel.predict drops them on such data)
+        view_model = model.without_pulsation() if getattr(model, "orders", ()) else model
+        ctxs = build_contexts(data, view_model, sensors=True)
         # residuals the model marks as checks score the leading explanations only
-        checks = {k: ctxs.pop(k) for k in getattr(model, "checks", ()) if k in ctxs}
+        checks = {k: ctxs.pop(k) for k in getattr(view_model, "checks", ()) if k in ctxs}
         res = analyse(ctxs, config=cfg, progress=progress, secondary=checks)
         res.findings = [replace(f, view=view) for f in res.findings]
         return res, ExtendedModel(baseline=model, chains=res.chains, source=data.source)

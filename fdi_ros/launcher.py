@@ -107,7 +107,8 @@ class Graph:
         weakref.finalize(self, shutil.rmtree, str(self._tmp), True)
         sections = {k: dict(v) for k, v in self.cfg.node_params.items() if k in NODE_KINDS}
         for k, v in (overrides or {}).items():
-            sections.setdefault(k, {}).update(v)
+            if k != MODELS_SECTION:
+                sections.setdefault(k, {}).update(v)
         sections.setdefault("fdi_supervisor", {})["graph_config"] = str(self.config_path)
         if replay is not None:
             sections.pop("fdi_plant", None)
@@ -137,7 +138,8 @@ class Graph:
         self.nodes: list[NodeProcess] = []
         # bank models first: the supervisor finds their services when it starts; each gets the
         # common section `fdi_models` (e.g. use_sim_time) and its own model
-        common = dict(self.cfg.node_params.get(MODELS_SECTION) or {})
+        common = {**(self.cfg.node_params.get(MODELS_SECTION) or {}),
+                  **(overrides or {}).get(MODELS_SECTION, {})}
         pfiles = {}
         for e in self.cfg.bank:
             spec = self.cfg.resolve_spec(e.model)

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from fdi_ros.graphwatch import GraphWatcher, run_ended
-from fdi_ros.launcher import Graph
+from fdi_ros.launcher import MODELS_SECTION, Graph
 
 
 @dataclass
@@ -88,7 +88,8 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
              watch_blocks: bool = False,
              log: Callable[[str], None] = lambda s: None,
              stop_after_isolation_s: float | None = None,
-             hosting: Any = None, hold_back: bool = True) -> tuple[LiveRun, GraphWatcher]:
+             hosting: Any = None, hold_back: bool = True,
+             batched: bool = True) -> tuple[LiveRun, GraphWatcher]:
     """Launch (the source starts after the start-up handshake: the bank active, every reader
     matched), watch until the source's end-of-data event (or ``stop_after_isolation_s`` plant
     seconds after an isolation), stop.
@@ -97,7 +98,8 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
     from it). ``hosting``: how the model nodes are hosted (:class:`fdi_ros.launcher.Graph`).
     ``hold_back``: the source waits for a diagnosis more than 1 s of plant time behind (its
     ``max_ahead_s``); False: the source keeps its pace whatever the graph does (throughput
-    benchmarks, where falling behind must show).
+    benchmarks, where falling behind must show). ``batched``: the bank and the supervisor
+    exchange a sensor block's vectors per message (False: one vector per message).
     Returns the run summary and the (closed) watcher with everything it saw.
     """
     # the source starts after the start-up handshake (see Graph), so no start delay
@@ -107,6 +109,9 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
                              "fdi_replayer": {"rate": realtime_factor, "max_ahead_s": ahead}}
     if scenario is not None:
         over["fdi_plant"]["scenario"] = str(Path(scenario).resolve())
+    if not batched:
+        over["fdi_supervisor"] = {"batched": False}
+        over[MODELS_SECTION] = {"batched": False}
     graph = Graph(config, overrides=over, record=record, replay=replay, echo=echo,
                   extra_block_readers=int(watch_blocks), watcher="fdi_watcher",
                   hosting=hosting)

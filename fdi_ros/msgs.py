@@ -25,14 +25,17 @@ import numpy as np
 from fdi_ros.core.types import Diagnosis, FaultEvent, FeatureVector, ResidualVector, SampleBlock
 
 PACKAGE = "fdi_msgs"
-MESSAGES = ("SensorBlock", "Features", "Residuals", "Symptoms", "Diagnosis", "FaultEvent",
-            "FaultRecord")
+MESSAGES = ("SensorBlock", "Features", "Residuals", "FeatureBlock", "ResidualBlock", "Symptoms",
+            "Diagnosis", "FaultEvent", "FaultRecord")
 
 # Topic -> message type of the graph. One table, used by nodes, recorder, replayer and bag tools.
 TOPICS: dict[str, str] = {
     "/fdi/sensor_block": f"{PACKAGE}/msg/SensorBlock",
     "/fdi/features": f"{PACKAGE}/msg/Features",
     "/fdi/residuals": f"{PACKAGE}/msg/Residuals",
+    # the batched path of the live graph: the vectors of one sensor block per message
+    "/fdi/feature_blocks": f"{PACKAGE}/msg/FeatureBlock",
+    "/fdi/residual_blocks": f"{PACKAGE}/msg/ResidualBlock",
     "/fdi/symptoms": f"{PACKAGE}/msg/Symptoms",
     "/fdi/diagnosis": f"{PACKAGE}/msg/Diagnosis",
     "/fdi/fault_inject": f"{PACKAGE}/msg/FaultEvent",
@@ -100,6 +103,28 @@ def _i8(values: Any, rclpy_style: bool) -> Any:
     return array.array("b", arr.tobytes()) if rclpy_style else arr
 
 
+def _u64(values: Any, rclpy_style: bool) -> Any:
+    arr = np.asarray(values, dtype=np.uint64)
+    return array.array("Q", arr.tobytes()) if rclpy_style else arr
+
+
+def _bool(values: Any, rclpy_style: bool) -> Any:
+    return [bool(v) for v in values] if rclpy_style else np.asarray(values, dtype=bool)
+
+
+def _runs(items: list[Any], key: Callable[[Any], Any]) -> list[list[Any]]:
+    """``items`` cut into runs of consecutive items with equal ``key``."""
+    out: list[list[Any]] = []
+    last: Any = object()
+    for it in items:
+        k = key(it)
+        if not out or k != last:
+            out.append([])
+            last = k
+        out[-1].append(it)
+    return out
+
+
 def _np(values: Any, dtype: type = np.float64) -> np.ndarray:
     if isinstance(values, np.ndarray):
         return values.astype(dtype, copy=False)
@@ -163,6 +188,33 @@ class MessageFactory:
             valid=bool(r.valid), status=r.status, names=list(r.names), units=list(r.units),
             values=_f64(r.values, self.rclpy_style), norm=float(r.norm), regime=r.regime)
 
+    def feature_blocks(self, fs: list[FeatureVector], block_index: int) -> list[Any]:
+        """FeatureBlock messages of the vectors one sensor block completed: one per run of
+        consecutive vectors with the same plant, names and units (normally one)."""
+        s = self.rclpy_style
+        return [self.cls("FeatureBlock")(
+            header=self.header(g[-1].t_end), plant=g[0].plant, block_index=int(block_index),
+            index=_u64([f.index for f in g], s), t_start_s=_f64([f.t_start for f in g], s),
+            t_end_s=_f64([f.t_end for f in g], s),
+            crank_angle_start_deg=_f64([f.alpha_start for f in g], s),
+            valid=_bool([f.valid for f in g], s), status=[f.status for f in g],
+            names=list(g[0].names), units=list(g[0].units),
+            values=_f64(np.concatenate([np.asarray(f.values, dtype=float) for f in g]), s))
+            for g in _runs(fs, lambda f: (f.plant, f.names, f.units))]
+
+    def residual_blocks(self, rs: list[ResidualVector]) -> list[Any]:
+        """ResidualBlock messages of one model's residual vectors: one per run of
+        consecutive vectors with the same model, names and units (normally one)."""
+        s = self.rclpy_style
+        return [self.cls("ResidualBlock")(
+            header=self.header(g[-1].t), model_id=g[0].model_id,
+            index=_u64([r.index for r in g], s), t_s=_f64([r.t for r in g], s),
+            valid=_bool([r.valid for r in g], s), status=[r.status for r in g],
+            names=list(g[0].names), units=list(g[0].units),
+            values=_f64(np.concatenate([np.asarray(r.values, dtype=float) for r in g]), s),
+            norm=_f64([r.norm for r in g], s), regime=[r.regime for r in g])
+            for g in _runs(rs, lambda r: (r.model_id, r.names, r.units))]
+
     def symptoms(self, *, index: int, t: float, valid: bool, status: str, names: Any,
                  levels: Any, residuals: Any, threshold_low: Any, threshold_high: Any,
                  threshold_intense: Any, regime: str = "") -> Any:
@@ -223,6 +275,49 @@ def to_residuals(m: Any) -> ResidualVector:
                           valid=bool(m.valid), status=m.status, names=tuple(m.names),
                           units=tuple(m.units), values=_np(m.values), norm=float(m.norm),
                           regime=m.regime)
+
+
+def _block_columns(m: Any, kind: str, per_vector: tuple[str, ...]) -> tuple[int, np.ndarray]:
+    """Number of vectors of a block message and its values as (vectors, names); ValueError
+    when the per-vector fields or the values do not match."""
+    n = len(m.index)
+    bad = [f for f in per_vector if len(getattr(m, f)) != n]
+    if bad:
+        got = ", ".join(f"{len(getattr(m, f))} {f}" for f in bad)
+        raise ValueError(f"{kind}: {n} vectors but {got}")
+    k = len(m.names)
+    if len(m.units) != k:
+        raise ValueError(f"{kind}: {k} names but {len(m.units)} units")
+    values = _np(m.values)
+    if values.size != n * k:
+        raise ValueError(f"{kind}: {values.size} values for {n} vectors x {k} names")
+    return n, values.reshape(n, k)
+
+
+def to_feature_list(m: Any) -> list[FeatureVector]:
+    """The feature vectors of a FeatureBlock message (ValueError if malformed)."""
+    n, v = _block_columns(m, f"FeatureBlock {m.block_index}", (
+        "t_start_s", "t_end_s", "crank_angle_start_deg", "valid", "status"))
+    names, units = tuple(m.names), tuple(m.units)
+    idx, t0, t1, a0 = (_np(m.index, np.uint64), _np(m.t_start_s), _np(m.t_end_s),
+                       _np(m.crank_angle_start_deg))
+    return [FeatureVector(plant=m.plant, index=int(idx[i]), t_start=float(t0[i]),
+                          t_end=float(t1[i]), alpha_start=float(a0[i]), valid=bool(m.valid[i]),
+                          status=m.status[i], names=names, units=units, values=v[i].copy())
+            for i in range(n)]
+
+
+def to_residual_list(m: Any) -> list[ResidualVector]:
+    """The residual vectors of a ResidualBlock message (ValueError if malformed)."""
+    n, v = _block_columns(m, f"ResidualBlock of {m.model_id!r}", (
+        "t_s", "valid", "status", "norm", "regime"))
+    names, units = tuple(m.names), tuple(m.units)
+    idx, t, norm = _np(m.index, np.uint64), _np(m.t_s), _np(m.norm)
+    return [ResidualVector(model_id=m.model_id, index=int(idx[i]), t=float(t[i]),
+                           valid=bool(m.valid[i]), status=m.status[i], names=names,
+                           units=units, values=v[i].copy(), norm=float(norm[i]),
+                           regime=m.regime[i])
+            for i in range(n)]
 
 
 def to_diagnosis(m: Any) -> Diagnosis:

@@ -287,27 +287,34 @@ def test_threshold_scale_live(diesel_bank):
         core.set("threshold_scale", 0.0)
 
 
-def test_start_gate_names_what_is_missing_until_every_reader_is_there(tmp_path):
+@pytest.mark.parametrize("batched", [True, False])
+def test_start_gate_names_what_is_missing_until_every_reader_is_there(tmp_path, batched):
     """The start-up handshake: no /fdi/ready until every on-line model is active, reads the
-    features and publishes residuals matched here, the preprocessor is matched and the named
-    readers (a recorder on every topic, a watcher on the diagnosis) are in the graph; a model
-    the driver gave up on (refused) is not waited for."""
+    features and publishes residuals matched here (a sensor block per message or one vector
+    per message), the preprocessor is matched and the named readers (a recorder on every
+    topic, a watcher on the diagnosis) are in the graph; a model the driver gave up on
+    (refused) is not waited for."""
     from fdi_ros.core.bankdriver import ACTIVE, INACTIVE
     from fdi_ros.core.graphconfig import load_graph_config
-    from fdi_ros.core.supervision import GATE_TOPICS, SupervisorCore
+    from fdi_ros.core.supervision import DATA_TOPICS, GATE_TOPICS, SupervisorCore
 
     cfg_file = tmp_path / "config" / "toy.yaml"
     cfg_file.parent.mkdir(exist_ok=True)
     cfg_file.write_text(TOY)
     core = SupervisorCore(load_graph_config(cfg_file))
+    core.batched = batched
+    f_t, r_t = DATA_TOPICS[batched]
     online = list(core.diag.models_online)
     nodes = [core.driver.nodes[m].node for m in online]
     readers = ["fdi_recorder", "fdi_launch_watcher:/fdi/diagnosis"]
-    full_subs = {"/fdi/features": {*nodes, "fdi_supervisor", "fdi_recorder"},
-                 "/fdi/residuals": {"fdi_supervisor", "fdi_recorder"},
-                 "/fdi/diagnosis": {"fdi_recorder", "fdi_launch_watcher"}}
-    full_pubs = {"/fdi/features": {"fdi_preprocessor"}, "/fdi/residuals": set(nodes)}
-    full_matched = {"/fdi/features": 1, "/fdi/residuals": len(nodes)}
+    full_subs: dict = {t: set() for t in (*GATE_TOPICS, f_t, r_t)}
+    full_subs[f_t] |= {*nodes, "fdi_supervisor"}
+    full_subs[r_t] |= {"fdi_supervisor"}
+    for t in GATE_TOPICS:
+        full_subs[t].add("fdi_recorder")
+    full_subs["/fdi/diagnosis"].add("fdi_launch_watcher")
+    full_pubs = {f_t: {"fdi_preprocessor"}, r_t: set(nodes)}
+    full_matched = {f_t: 1, r_t: len(nodes)}
     # nothing active yet: every model named
     miss = core.waiting_for(full_pubs, full_subs, full_matched, readers)
     assert all(any(n in m for m in miss) for n in nodes), miss
@@ -321,14 +328,14 @@ def test_start_gate_names_what_is_missing_until_every_reader_is_there(tmp_path):
         matched = dict(full_matched)
         what = rng.choice(["sub", "pub", "matched"])
         if what == "sub":
-            t = rng.choice(GATE_TOPICS)
+            t = rng.choice(sorted(subs))
             gone = rng.choice(sorted(subs[t] - {"fdi_supervisor"}))
             subs[t].discard(gone)
-            need = gone in nodes and t == "/fdi/features" or gone == "fdi_recorder" or \
+            need = gone in nodes and t == f_t or gone == "fdi_recorder" or \
                 gone == "fdi_launch_watcher" and t == "/fdi/diagnosis"
         elif what == "pub":
             gone = rng.choice(nodes)
-            pubs["/fdi/residuals"].discard(gone)
+            pubs[r_t].discard(gone)
             need = True
         else:
             t = rng.choice(sorted(matched))
@@ -339,8 +346,8 @@ def test_start_gate_names_what_is_missing_until_every_reader_is_there(tmp_path):
         assert len(miss) <= 1, miss
     # a refused model is out of the bank: not waited for
     core.driver.on_change_result(online[-1], False, 1.0, ACTIVE)
-    less = {"/fdi/features": 1, "/fdi/residuals": len(nodes) - 1}
-    pubs = {"/fdi/features": {"fdi_preprocessor"}, "/fdi/residuals": set(nodes[:-1])}
+    less = {f_t: 1, r_t: len(nodes) - 1}
+    pubs = {f_t: {"fdi_preprocessor"}, r_t: set(nodes[:-1])}
     assert core.waiting_for(pubs, full_subs, less, readers) == []
 
 

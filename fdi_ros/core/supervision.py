@@ -57,11 +57,18 @@ PARAMS = {  # name: (default, description, read_only, (min, max) or None)
     "wait_for_readers": ([""], "nodes that must read /fdi/features, /fdi/residuals and "
                          "/fdi/diagnosis before /fdi/ready (a recorder), or 'node:/topic' one "
                          "of them (a watcher: 'fdi_launch_watcher:/fdi/diagnosis')", True, None),
+    "batched": (True, "read the bank's feature and residual vectors a sensor block per message "
+                "(/fdi/feature_blocks, /fdi/residual_blocks); false: one per message "
+                "(/fdi/features, /fdi/residuals), for model nodes that publish so", True, None),
     "ready_timeout_s": (120.0, "wall s after which /fdi/ready is sent with what is still "
                         "missing named (a source must not wait forever)", True, (0.0, 1e6)),
 }
-# topics the start-up handshake looks at (who publishes and reads them)
+# topics the start-up handshake looks at (who publishes and reads them): the readers named in
+# wait_for_readers must read these; the bank's own topics depend on ``batched``
 GATE_TOPICS = ("/fdi/features", "/fdi/residuals", "/fdi/diagnosis")
+# (features, residuals) the supervisor and the bank exchange, batched or one vector per message
+DATA_TOPICS = {True: ("/fdi/feature_blocks", "/fdi/residual_blocks"),
+               False: ("/fdi/features", "/fdi/residuals")}
   # diagnostic_msgs/DiagnosticStatus levels
 
 
@@ -327,6 +334,7 @@ class SupervisorCore:
                  confirm_s: float = 0.1, heal_s: float = 5.0, store: Any = None,
                  snapshot_s: float = 5.0) -> None:
         self.cfg = cfg
+        self.batched = True  # the bank's vectors a sensor block per message (DATA_TOPICS)
         self.diag = Diagnoser(cfg)
         self.driver = BankDriver([(e.id, e.node_name) for e in cfg.bank], policy)
         self.driver.set_desired(self.diag.models_online)
@@ -383,6 +391,7 @@ class SupervisorCore:
                    model_wall_s=p["model_wall_s"], confirm_s=p["confirm_s"],
                    heal_s=p["heal_s"], store=FaultStore(state / f"{cfg.plant}_faults.sqlite"),
                    snapshot_s=p["snapshot_s"])
+        core.batched = bool(p.get("batched", True))
         core.set("t0_s", p["t0_s"])
         core.set("explain_norm", p["explain_norm"])
         if core.diag.symptom_gen is not None:
@@ -644,8 +653,10 @@ class SupervisorCore:
         recorder), or ``"node:/topic"`` only that one (a watcher of the diagnosis).
         Needed: every on-line model confirmed active (a model refused or in a state it cannot
         leave is out of the bank and not waited for), reading the features and publishing
-        residuals, all of them matched here; the features' publisher matched here.
+        residuals (on :data:`DATA_TOPICS` of ``self.batched``), all of them matched here; the
+        features' publisher matched here.
         """
+        f_topic, r_topic = DATA_TOPICS[self.batched]
         out: list[str] = []
         live = 0
         for m in self.diag.models_online:
@@ -656,13 +667,13 @@ class SupervisorCore:
                 out.append(f"{v.node} {label(v.observed)} (wanted active)")
                 continue
             live += 1
-            for topic, seen in (("/fdi/features", subs), ("/fdi/residuals", pubs)):
+            for topic, seen in ((f_topic, subs), (r_topic, pubs)):
                 if v.node not in set(seen.get(topic, ())):
                     out.append(f"{v.node} on {topic}")
-        if matched.get("/fdi/features", 0) < 1:
-            out.append("a publisher of /fdi/features (the preprocessor)")
-        if matched.get("/fdi/residuals", 0) < live:
-            out.append(f"{matched.get('/fdi/residuals', 0)}/{live} residual publishers matched")
+        if matched.get(f_topic, 0) < 1:
+            out.append(f"a publisher of {f_topic} (the preprocessor)")
+        if matched.get(r_topic, 0) < live:
+            out.append(f"{matched.get(r_topic, 0)}/{live} residual publishers matched")
         for r in (x for x in readers if x):
             node, _, only = r.partition(":")
             out += [f"{node} reading {t}" for t in ((only,) if only else GATE_TOPICS)

@@ -1,6 +1,11 @@
 """Preprocessor node: sensor blocks -> feature vectors (crank-synchronous segments for an
 engine, one vector per sample for others), via :func:`fdi_ros.plants.make_preprocessor`.
 
+Every vector goes out twice: one message per vector on ``/fdi/features`` (for recorders and
+users' nodes) and, batched, the vectors each sensor block completed in one ``FeatureBlock`` on
+``/fdi/feature_blocks`` (what the bank and the supervisor read: one message per block instead
+of one per segment for each of them).
+
 A gap in the block counter (a dropped block) is logged and the partial segment across it is
 marked invalid by the core, so a lost message never yields numbers that look valid. At the
 source's end of the data it says ``end_of_features`` once every block is handled
@@ -27,13 +32,14 @@ class PreprocessorNode(Node):
     def __init__(self) -> None:
         super().__init__("fdi_preprocessor")
         declare_params(self, PARAMS)
-        from fdi_msgs.msg import Features, SensorBlock
+        from fdi_msgs.msg import FeatureBlock, Features, SensorBlock
 
         from fdi_ros.plants import make_preprocessor
 
         self.pre = make_preprocessor(self.get_parameter("plant").value)
         self._fac = msgs.MessageFactory("rclpy")
         self._pub = self.create_publisher(Features, "/fdi/features", DATA_QOS)
+        self._pub_blocks = self.create_publisher(FeatureBlock, "/fdi/feature_blocks", DATA_QOS)
         self.create_subscription(SensorBlock, "/fdi/sensor_block", self._on_block, DATA_IN_QOS)
         self._last_index: int | None = None
         self._end = EndOfFeatures(self)
@@ -64,6 +70,8 @@ class PreprocessorNode(Node):
         for fv in feats:
             self._pub.publish(self._fac.features(fv))
             self._last_features = fv.index
+        for m in self._fac.feature_blocks(feats, block.index):
+            self._pub_blocks.publish(m)
 
 
 def main(args: list[str] | None = None) -> int:

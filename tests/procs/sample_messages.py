@@ -33,8 +33,16 @@ def sample_records(fac: Any) -> dict[str, Any]:
                      isolation_time=float("nan"))
     fault = FaultEvent(t=1.0, fault="leak_ic_engine", size=5.0, size_unit="mm", profile="ramp",
                        ramp_s=0.5, active=True)
+    feats2 = FeatureVector(plant="diesel", index=8, t_start=1.515, t_end=1.53, alpha_start=900.0,
+                           valid=True, status="", names=feats.names, units=feats.units,
+                           values=np.array([2001.0, 1.64, 0.87]))
+    res2 = ResidualVector(model_id="nominal", index=8, t=1.53, valid=False,
+                          status="not valid here: settling", names=res.names, units=res.units,
+                          values=np.array([float("nan"), 0.5]), norm=float("nan"), regime="egr")
     return {
         "/fdi/sensor_block": fac.sensor_block(block),
+        "/fdi/feature_blocks": fac.feature_blocks([feats, feats2], block_index=41)[0],
+        "/fdi/residual_blocks": fac.residual_blocks([res, res2])[0],
         "/fdi/features": fac.features(feats),
         "/fdi/residuals": fac.residuals(res),
         "/fdi/symptoms": fac.symptoms(index=7, t=1.515, valid=True, status="",

@@ -15,6 +15,7 @@ import array
 import math
 import os
 import sys
+from collections import OrderedDict
 from collections.abc import Callable
 from functools import lru_cache
 from pathlib import Path
@@ -305,6 +306,25 @@ def to_feature_list(m: Any) -> list[FeatureVector]:
                           t_end=float(t1[i]), alpha_start=float(a0[i]), valid=bool(m.valid[i]),
                           status=m.status[i], names=names, units=units, values=v[i].copy())
             for i in range(n)]
+
+
+# FeatureBlocks decoded in this process: the nodes of a model host receive the same block
+_DECODED: OrderedDict[tuple, list[FeatureVector]] = OrderedDict()
+
+
+def to_feature_list_shared(m: Any) -> list[FeatureVector]:
+    """:func:`to_feature_list`, decoded once per process for the same message content (the
+    vectors are shared: read them, do not change them)."""
+    key = (m.plant, m.block_index, m.header.stamp.sec, m.header.stamp.nanosec, tuple(m.names),
+           bytes(memoryview(m.index)), bytes(memoryview(m.values)), tuple(m.status),
+           tuple(m.valid), bytes(memoryview(m.t_start_s)), bytes(memoryview(m.t_end_s)),
+           bytes(memoryview(m.crank_angle_start_deg)), tuple(m.units))
+    hit = _DECODED.get(key)
+    if hit is None:
+        hit = _DECODED[key] = to_feature_list(m)
+        if len(_DECODED) > 8:
+            _DECODED.popitem(last=False)
+    return hit
 
 
 def to_residual_list(m: Any) -> list[ResidualVector]:

@@ -178,3 +178,35 @@ def test_fast_splits_equal_the_reference(p, compress, with_val, monkeypatch):
     for u, v in zip(a.to_arrays().values(), b.to_arrays().values()):
         np.testing.assert_array_equal(u, v)
     np.testing.assert_array_equal(a.predict(X[:50]), b.predict(X[:50]))
+
+
+def test_stack_equals_each_map_predicting_alone():
+    """LolimotStack (several maps of the same inputs in one pass) gives every map's own
+    prediction, for maps of different sizes, scalings and widths, at random points inside,
+    far outside and with NaN."""
+    from fdi_ros.core.lolimot import LolimotStack
+
+    seed = int(np.random.SeedSequence().entropy % 2**32)
+    rng = np.random.default_rng(seed)
+    p = int(rng.integers(1, 4))
+    models = []
+    for _ in range(int(rng.integers(1, 6))):
+        X = rng.uniform(-1, 1, size=(400, p)) * rng.uniform(0.1, 100, size=p) + rng.normal(
+            size=p) * 50
+        y = np.sin(X @ rng.normal(size=p) / np.abs(X).max()) + 0.01 * rng.normal(size=400)
+        m = Lolimot(max_models=int(rng.integers(1, 12)), k_sigma=float(rng.uniform(0.2, 0.6)))
+        m.fit(X, y)
+        models.append(m)
+    stack = LolimotStack(models)
+    Xq = rng.normal(size=(50, p)) * 200
+    Xq[3, 0] = np.nan
+    Xq[5] = 1e6
+    got = stack.predict(Xq)
+    want = np.column_stack([m.predict(Xq) for m in models])
+    assert got.shape == want.shape
+    assert np.array_equal(np.isnan(got), np.isnan(want)), seed
+    ok = np.isfinite(want)
+    assert np.allclose(got[ok], want[ok], rtol=1e-9, atol=1e-12), (seed, np.abs(got - want).max())
+    assert np.isnan(got[3]).all()
+    with pytest.raises(ValueError):
+        LolimotStack([])

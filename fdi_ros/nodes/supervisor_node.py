@@ -1,10 +1,7 @@
 """Expert supervisor node, the ROS edge of :class:`fdi_ros.core.supervision.SupervisorCore`:
 parameters, subscriptions (features, residuals, block stamps, each bank node's transitions),
-lifecycle clients, fault services, ``/fdi/ready``, the end of the diagnosis, timers.
-
-The bank's feature and residual vectors come a sensor block per message
-(``/fdi/feature_blocks``, ``/fdi/residual_blocks``), or with ``batched:=false`` one vector per
-message (``/fdi/features``, ``/fdi/residuals``: model nodes of one's own that publish so)."""
+lifecycle clients, fault services, ``/fdi/ready``, the end of the diagnosis, timers. The bank's
+vectors: a sensor block per message, or one per message (``batched``, :mod:`.bankio`)."""
 
 from __future__ import annotations
 
@@ -13,15 +10,7 @@ from functools import partial
 from typing import Any, cast
 
 from diagnostic_msgs.msg import DiagnosticArray
-from fdi_msgs.msg import (
-    Diagnosis,
-    FeatureBlock,
-    Features,
-    ResidualBlock,
-    Residuals,
-    SensorBlock,
-    Symptoms,
-)
+from fdi_msgs.msg import Diagnosis, SensorBlock, Symptoms
 from fdi_msgs.srv import ClearFaults, GetFaults
 from lifecycle_msgs.msg import TransitionEvent
 from lifecycle_msgs.srv import ChangeState as CS
@@ -33,7 +22,8 @@ from std_msgs.msg import Header
 
 from fdi_ros import bag, msgs
 from fdi_ros.core.bankdriver import ChangeState, GetState, Note
-from fdi_ros.core.supervision import DATA_TOPICS, GATE_TOPICS, PARAMS, Publish, SupervisorCore
+from fdi_ros.core.supervision import GATE_TOPICS, PARAMS, Publish, SupervisorCore
+from fdi_ros.nodes import bankio
 from fdi_ros.nodes import endofdata as eod
 from fdi_ros.nodes import startup as su
 from fdi_ros.nodes.common import DATA_IN_QOS, DATA_QOS, LATCHED_QOS, run_node
@@ -60,23 +50,16 @@ class SupervisorNode(Node):
                     "ready": self.create_publisher(Header, su.READY_TOPIC, LATCHED_QOS),
                     "end": self.create_publisher(Header, eod.END_OF_DIAGNOSIS_TOPIC, LATCHED_QOS)}
         self.create_subscription(Header, eod.END_OF_FEATURES_TOPIC, self._on_end, LATCHED_QOS)
-        # the bank's vectors: a sensor block per message (batched) or one per message
-        f_t, r_t = DATA_TOPICS[self.core.batched]
-        kinds = ((r_t, ResidualBlock, msgs.to_residual_list, self.core.residual),
-                 (f_t, FeatureBlock, msgs.to_feature_list, self.core.features)) \
-            if self.core.batched else \
-            ((r_t, Residuals, lambda m: [msgs.to_residuals(m)], self.core.residual),
-             (f_t, Features, lambda m: [msgs.to_features(m)], self.core.features))
-        self._subs = {t: self.create_subscription(c, t, self._safe(f, g), DATA_IN_QOS)
-                      for t, c, f, g in kinds}
-        self._gate_topics = tuple(dict.fromkeys((*GATE_TOPICS, f_t, r_t)))
+        ins = bankio.supervisor_inputs(self.core.batched)  # the bank's vectors (see bankio)
+        self._subs = {t: self.create_subscription(c, t, bankio.fed(self, f, g), DATA_IN_QOS)
+                      for (t, c, f), g in zip(ins, (self.core.residual, self.core.features))}
         self.create_subscription(SensorBlock, "/fdi/sensor_block", lambda raw: self.core.block(
             msgs.raw_header_stamp(cast(bytes, raw)), time.monotonic()), DATA_IN_QOS, raw=True)
         self.create_service(GetFaults, "/fdi/get_faults", lambda q, r: GetFaults.Response(
             faults=msgs.fault_records(self.core.memory.records.values())))
         self.create_service(ClearFaults, "/fdi/clear_faults", self._clear_faults)
-        self._gate: tuple[float, list] | None = (time.monotonic() + p["ready_timeout_s"],
-                                                 list(p["wait_for_readers"]))
+        self._gate: tuple[float, list] | None = (
+            time.monotonic() + p["ready_timeout_s"], list(p["wait_for_readers"]))
         self.create_timer(0.05, self._tick)
         self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
         self.get_logger().info(f"fault memory {self.core.store.path} ({len(self.core.memory.records)} records)")  # noqa: E501
@@ -86,8 +69,9 @@ class SupervisorNode(Node):
         self._do(self.core.tick(now, {i: c.service_is_ready() and g.service_is_ready() for i, (
             c, g) in self.clients_.items()}, {n for n, _ in self.get_node_names_and_namespaces()}))
         if self._gate is not None:  # the start-up handshake, until the source may start
-            pubs, subs = ({t: {i.node_name for i in f(t)} for t in self._gate_topics} for f in (
-                self.get_publishers_info_by_topic, self.get_subscriptions_info_by_topic))
+            pubs, subs = ({t: {i.node_name for i in f(t)} for t in (*GATE_TOPICS, *self._subs)}
+                          for f in (self.get_publishers_info_by_topic,
+                                    self.get_subscriptions_info_by_topic))
             self.core.waiting = self.core.waiting_for(pubs, subs, {
                 t: s.get_publisher_count() for t, s in self._subs.items()}, self._gate[1])
             if not self.core.waiting or now > self._gate[0]:
@@ -107,16 +91,6 @@ class SupervisorNode(Node):
         except (ValueError, TypeError) as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
-
-    def _safe(self, convert: Any, feed: Any) -> Any:
-        def callback(m: Any) -> None:  # a malformed message is dropped and logged, never fatal
-            try:
-                recs = convert(m)
-            except (ValueError, TypeError, KeyError, IndexError) as exc:
-                return self.get_logger().warn(f"malformed message dropped: {exc}")
-            for rec in recs:
-                self._do(feed(rec, time.monotonic()))
-        return callback
 
     def _on_transition(self, model_id: str, m: Any) -> None:
         self._do(self.core.driver.on_transition_event(model_id, m.start_state.id,

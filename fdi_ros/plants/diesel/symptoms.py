@@ -35,6 +35,7 @@ import numpy as np
 from fdi_ros.core.fst import LEVEL_CODES, FaultSymptomTable, signature_string
 from fdi_ros.core.fst import isolate as _isolate
 from fdi_ros.core.fst import load_fault_symptom_tables as _load_tables
+from fdi_ros.core.lolimot import LolimotStack
 from fdi_ros.core.sliding import SlidingRange
 from fdi_ros.core.symptoms import (
     TOO_FAST,
@@ -297,7 +298,12 @@ class QuasiStationarity:
         self.config = config
         self._lag = config.rate_lag if config is not None else 2
         self._hist: deque[tuple[float, float, float]] = deque(maxlen=self._lag + 1)
-        self._inputs: deque[tuple[float, float, float]] = deque()  # (t, n, fuel), settle_s
+        # speed and fuel over the last settle_s: their ranges (O(1) per segment), the times
+        # of the segments in the window and of those without a finite fuel value
+        w = config.settle_s if config is not None else 0.0
+        self._n_range, self._fuel_range = SlidingRange(w), SlidingRange(w)
+        self._times: deque[float] = deque()
+        self._no_fuel: deque[float] = deque()
         # actuator commands' range over ACTUATOR_SETTLE_S (core/sliding: O(1) per segment)
         self._acts = {k: SlidingRange(ACTUATOR_SETTLE_S) for k in GATED_ACTUATORS}
 
@@ -308,7 +314,8 @@ class QuasiStationarity:
 
     def reset(self) -> None:
         self._hist.clear()
-        self._inputs.clear()
+        for q in (self._n_range, self._fuel_range, self._times, self._no_fuel):
+            q.clear()
         for r in self._acts.values():
             r.clear()
 
@@ -324,12 +331,18 @@ class QuasiStationarity:
             return float("nan"), float("nan")
         self._hist.append((t, n, p2))
         fuel = fv.get("fuel") if "fuel" in fv.names else float("nan")
-        self._inputs.append((t, n, fuel))
+        self._n_range.push(t, n)
+        self._fuel_range.push(t, fuel)
+        self._times.append(t)
+        if not math.isfinite(fuel):
+            self._no_fuel.append(t)
         for k, r in self._acts.items():
             r.push(t, fv.get(k) if k in fv.names else math.nan)
         if self.config is not None:
-            while self._inputs and self._inputs[0][0] < t - self.config.settle_s:
-                self._inputs.popleft()
+            edge = t - self.config.settle_s
+            for q in (self._times, self._no_fuel):
+                while q and q[0] < edge:
+                    q.popleft()
         if len(self._hist) < self._lag + 1:
             return float("nan"), float("nan")
         t0, n0, p0 = self._hist[0]
@@ -343,13 +356,12 @@ class QuasiStationarity:
         c = self.config
         if c is None or c.settle_s <= 0:
             return True, 0.0, 0.0
-        h = self._inputs  # plain min/max: this runs per segment and per bank model, live
-        if len(h) < 2 or h[-1][0] - h[0][0] < 0.8 * c.settle_s:
+        h = self._times  # sliding ranges: this runs per segment and per bank model, live
+        if len(h) < 2 or h[-1] - h[0] < 0.8 * c.settle_s:
             return False, float("nan"), float("nan")
-        ns = [x[1] for x in h]
-        fs = [x[2] for x in h]
-        dn = float(max(ns) - min(ns))
-        df = float(max(fs) - min(fs)) if all(math.isfinite(f) for f in fs) else 0.0
+        dn = float(self._n_range.range() or 0.0)
+        fr = self._fuel_range.range()
+        df = float(fr) if fr is not None and not self._no_fuel else 0.0
         return dn <= c.max_speed_change and df <= c.max_fuel_change, dn, df
 
     def rates_beyond(self, fv: FeatureVector, invalid: bool = False) -> str:
@@ -435,10 +447,41 @@ def block_rms(E: np.ndarray, block: int = 10) -> float:
     hide it: a least-squares residual has zero mean along a constant direction)."""
     E = np.atleast_2d(E)
     k = E.shape[0]
-    edges = np.arange(k, 0, -block)[::-1]
-    starts = np.concatenate([[0], edges[:-1]])
-    means = np.array([E[a:b].mean(axis=0) for a, b in zip(starts, edges)])
+    r = k % block  # rows of the oldest, partial block
+    full = E[r:].reshape(-1, block, E.shape[1]).mean(axis=1)
+    means = np.vstack([E[:r].mean(axis=0, keepdims=True), full]) if r else full
     return float(np.sqrt(np.mean(means ** 2)))
+
+
+class _Window:
+    """The last ``size`` rows of two row streams, as contiguous arrays in time order (the
+    segment window of a fault-hypothesis model; O(1) amortised per row)."""
+
+    def __init__(self, size: int) -> None:
+        self.size = int(size)
+        self._a: np.ndarray | None = None
+        self._b: np.ndarray | None = None
+        self._start = self._end = 0
+
+    def clear(self) -> None:
+        self._start = self._end = 0
+
+    def push(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Append one row to each; the windows (oldest first) as views."""
+        if self._a is None or self._a.shape[1] != a.shape[0]:
+            self._a = np.empty((2 * self.size, a.shape[0]))
+            self._b = np.empty((2 * self.size, b.shape[0]))
+            self._start = self._end = 0
+        assert self._b is not None
+        if self._end == self._a.shape[0]:  # full: move the last size - 1 rows to the front
+            keep = self.size - 1
+            self._a[:keep] = self._a[self._end - keep:self._end]
+            self._b[:keep] = self._b[self._end - keep:self._end]
+            self._start, self._end = 0, keep
+        self._a[self._end], self._b[self._end] = a, b
+        self._end += 1
+        self._start = max(self._start, self._end - self.size)
+        return self._a[self._start:self._end], self._b[self._start:self._end]
 
 
 def _z(r: np.ndarray, cfg: SymptomConfig | None, regime: str = "") -> np.ndarray:
@@ -537,7 +580,11 @@ class FaultHypothesisResidualModel(_Batchable):
         self.penalty = float(penalty)
         self.min_effect = float(min_effect)
         self.regimes = None if regimes is None else tuple(str(r) for r in regimes)
-        self._buf: deque = deque(maxlen=self.window)
+        self._buf = _Window(self.window)
+        # the effect maps evaluated together (one pass per segment, not one per residual)
+        self._cols = [j for j, name in enumerate(config.names) if name in self.directions]
+        self._stack = LolimotStack([self.directions[config.names[j]] for j in self._cols]) \
+            if self._cols else None
         self.size_estimate = 0.0
         self._qs = QuasiStationarity(config)
 
@@ -565,9 +612,8 @@ class FaultHypothesisResidualModel(_Batchable):
         """g(x): normalised residual change per unit fault size at (N, p) inputs, (N, m)."""
         X = np.atleast_2d(np.asarray(X, dtype=float))
         G = np.zeros((X.shape[0], len(self.config.names)))
-        for j, name in enumerate(self.config.names):
-            if name in self.directions:
-                G[:, j] = self.directions[name].predict(X)
+        if self._stack is not None:
+            G[:, self._cols] = self._stack.predict(X)
         return G
 
     def residuals(self, fv: FeatureVector) -> ResidualVector:
@@ -590,9 +636,7 @@ class FaultHypothesisResidualModel(_Batchable):
 
     def _step(self, rv: ResidualVector, g: np.ndarray) -> ResidualVector:
         z = _z(rv.values, self.config, rv.regime)
-        self._buf.append((z, g))
-        Z = np.array([b[0] for b in self._buf])
-        G = np.array([b[1] for b in self._buf])
+        Z, G = self._buf.push(z, g)
         den = float(np.sum(G * G))
         s = max(0.0, float(np.sum(G * Z)) / den) if den > 0 else 0.0
         self.size_estimate = s

@@ -116,6 +116,11 @@ class ResidualNode(LifecycleNode):
 
     def _answer(self, features: list[Any]) -> None:
         out = []
+        try:  # a block's segments computed together where the model can (else one by one)
+            if (pre := getattr(self._model, "prefetch", None)) is not None and features:
+                pre(features)
+        except Exception as exc:
+            self.get_logger().warn(f"prefetch: {exc}", throttle_duration_sec=5.0)
         for fv in features if self._model is not None else ():
             try:
                 out.append(self._model.residuals(fv))

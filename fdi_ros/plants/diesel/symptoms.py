@@ -258,6 +258,31 @@ def residual_vector(models: ReferenceModelSet, fv: FeatureVector, *, model_id: s
                           values=np.asarray(r, dtype=float), norm=norm, regime=regime)
 
 
+def residual_vectors(models: ReferenceModelSet, fvs: Sequence[FeatureVector], *,
+                     model_id: str = "nominal") -> list[ResidualVector]:
+    """:func:`residual_vector` of several feature vectors with the same names (a sensor
+    block's segments), the reference models evaluated once for all of them."""
+    fvs = list(fvs)
+    if not fvs or any(fv.names != fvs[0].names for fv in fvs) or \
+            any(k not in fvs[0].names for k in FEATURES):
+        return [residual_vector(models, fv, model_id=model_id) for fv in fvs]
+    names = fvs[0].names
+    V = np.array([fv.values for fv in fvs], dtype=float)
+    data = {k: V[:, names.index(k)] for k in model_features(models) if k in names}
+    R, ok, regimes = parity(models, data)
+    why = region_status(models, data, ok) if not ok.all() else [""] * len(fvs)
+    out = []
+    for i, fv in enumerate(fvs):
+        status = "" if fv.valid else fv.status or "features not valid"
+        if fv.valid and not ok[i]:
+            status = why[i] or "residuals not finite"
+        out.append(ResidualVector(model_id=model_id, index=fv.index, t=fv.t_end,
+                                  valid=bool(fv.valid and ok[i]), status=status,
+                                  names=RESIDUALS, units=RESIDUAL_UNITS, values=R[i].copy(),
+                                  norm=float("nan"), regime=str(regimes[i])))
+    return out
+
+
 # (id of the reference set, segment) -> (reference set, residuals): see shared_residual_vector
 _SHARED: OrderedDict[tuple, tuple[ReferenceModelSet, ResidualVector]] = OrderedDict()
 SHARED_SEGMENTS = 64
@@ -273,16 +298,33 @@ def shared_residual_vector(models: ReferenceModelSet, fv: FeatureVector, *,
     once per segment instead of once per node. The key is the whole feature vector (index,
     times, validity, names and the values' bytes): a hit is the same computation.
     """
-    key = (id(models), fv.index, fv.t_start, fv.t_end, fv.valid, fv.status, fv.names,
-           np.asarray(fv.values, dtype=float).tobytes())
-    hit = _SHARED.get(key)
+    hit = _SHARED.get(_shared_key(models, fv))
     if hit is None or hit[0] is not models:
-        hit = (models, residual_vector(models, fv, model_id=model_id))
-        _SHARED[key] = hit
-        if len(_SHARED) > SHARED_SEGMENTS:
-            _SHARED.popitem(last=False)
+        hit = _share(models, fv, residual_vector(models, fv, model_id=model_id))
     rv = hit[1]
     return replace(rv, model_id=model_id, values=rv.values.copy())
+
+
+def _shared_key(models: ReferenceModelSet, fv: FeatureVector) -> tuple:
+    return (id(models), fv.index, fv.t_start, fv.t_end, fv.valid, fv.status, fv.names,
+            np.asarray(fv.values, dtype=float).tobytes())
+
+
+def _share(models: ReferenceModelSet, fv: FeatureVector, rv: ResidualVector
+           ) -> tuple[ReferenceModelSet, ResidualVector]:
+    hit = _SHARED[_shared_key(models, fv)] = (models, rv)
+    if len(_SHARED) > SHARED_SEGMENTS:
+        _SHARED.popitem(last=False)
+    return hit
+
+
+def prefetch_shared(models: ReferenceModelSet, fvs: Sequence[FeatureVector]) -> None:
+    """Compute the parity residuals of a sensor block's segments at once (vectorised) for
+    :func:`shared_residual_vector`: the bank models of a process then find them computed."""
+    todo = [fv for fv in fvs if _SHARED.get(_shared_key(models, fv), (None,))[0] is not models]
+    if todo and len(todo) <= SHARED_SEGMENTS // 2:
+        for fv, rv in zip(todo, residual_vectors(models, todo)):
+            _share(models, fv, rv)
 
 
 class QuasiStationarity:
@@ -529,6 +571,10 @@ class ReferenceResidualModel(_Batchable):
         self._zbuf.clear()
         self._qs.reset()
 
+    def prefetch(self, fvs: Sequence[FeatureVector]) -> None:
+        """The segments about to be asked, computed together where they can be."""
+        prefetch_shared(self.models, fvs)
+
     def residuals(self, fv: FeatureVector) -> ResidualVector:
         cfg = self.config
         rv = shared_residual_vector(self.models, fv, model_id=self.model_id)
@@ -581,6 +627,7 @@ class FaultHypothesisResidualModel(_Batchable):
         self.min_effect = float(min_effect)
         self.regimes = None if regimes is None else tuple(str(r) for r in regimes)
         self._buf = _Window(self.window)
+        self._g: dict[tuple[int, float], np.ndarray] = {}  # g(x) of prefetched segments
         # the effect maps evaluated together (one pass per segment, not one per residual)
         self._cols = [j for j, name in enumerate(config.names) if name in self.directions]
         self._stack = LolimotStack([self.directions[config.names[j]] for j in self._cols]) \
@@ -601,6 +648,18 @@ class FaultHypothesisResidualModel(_Batchable):
         self._buf.clear()
         self.size_estimate = 0.0
         self._qs.reset()
+        self._g.clear()
+
+    def prefetch(self, fvs: Sequence[FeatureVector]) -> None:
+        """The segments about to be asked: parity residuals and effect maps g(x) of all of
+        them in one evaluation each (a sensor block's segments, live)."""
+        prefetch_shared(self.models, fvs)
+        try:
+            X = [[fv.get(k) for k in self.inputs] for fv in fvs]
+        except KeyError:
+            return
+        self._g = {(fv.index, fv.t_end): g for fv, g in zip(fvs, self.direction(X))} \
+            if X else {}
 
     @property
     def inputs(self) -> tuple[str, ...]:
@@ -625,7 +684,9 @@ class FaultHypothesisResidualModel(_Batchable):
         if not self.covers(rv.regime):
             return self._elsewhere(rv)
         try:
-            g = self.direction([[fv.get(k) for k in self.inputs]])[0]
+            g = self._g.pop((fv.index, fv.t_end), None)
+            if g is None:
+                g = self.direction([[fv.get(k) for k in self.inputs]])[0]
         except KeyError as exc:
             return ResidualVector(**{**rv.__dict__, "valid": False,
                                      "status": f"feature missing: {exc}"})

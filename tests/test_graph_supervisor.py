@@ -80,12 +80,14 @@ def test_external_deactivate_and_frozen_preprocessor_fault_free(diesel_bank, tmp
             for v in (dv, ok):
                 req = SetParameters.Request(parameters=[Parameter(name="t0_s", value=v)])
                 done["params"].append(_call(w, cli, req, "set t0_s"))
-        if "external" not in done and d.t >= 2.0:
+        if "client" not in done:  # matched with the service before the call (a request sent
+            # before the client is matched can be lost, as `ros2 lifecycle set` waits too)
+            done["client"] = w.node.create_client(ChangeState, "/fdi_model_nominal/change_state")
+        if "external" not in done and d.t >= 2.0 and done["client"].service_is_ready():
             # what `ros2 lifecycle set /fdi_model_nominal deactivate` does
-            cli = w.node.create_client(ChangeState, "/fdi_model_nominal/change_state")
             req = ChangeState.Request()
             req.transition.id = 4  # deactivate
-            done["external"] = cli.call_async(req)
+            done["external"] = done["client"].call_async(req)
         if "stop" not in done and d.t >= 7.0:
             os.kill(graph.node("fdi_preprocessor").proc.pid, signal.SIGSTOP)
             done["stop"] = time.monotonic()

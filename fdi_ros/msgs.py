@@ -42,6 +42,9 @@ TOPICS: dict[str, str] = {
     "/fdi/fault_inject": f"{PACKAGE}/msg/FaultEvent",
     "/fdi/fault_truth": f"{PACKAGE}/msg/FaultEvent",
 }
+# the same vectors as /fdi/features and /fdi/residuals, a sensor block per message (transport
+# between the graph's nodes): not recorded unless asked for
+BATCHED_TOPICS = ("/fdi/feature_blocks", "/fdi/residual_blocks")
 
 
 def msg_dir() -> Path:

@@ -124,8 +124,9 @@ def test_live_topics_recorded_to_mcap_equal_what_was_sent(ros, tmp_path: Path):
     from fdi_ros.nodes.common import DATA_QOS, LATCHED_QOS
 
     out = tmp_path / "rec"
+    # the batched transport topics are recorded when asked for (not by default)
     rec = spawn([sys.executable, "-m", "fdi_ros.nodes.recorder_node", "--ros-args",
-                 "-p", f"bag:={out}"])
+                 "-p", f"bag:={out}", "-p", "topics:=[/fdi/feature_blocks,/fdi/residual_blocks]"])
     sent = sample_records(MessageFactory("rclpy"))
     pubs = {}
     for topic, msg in sent.items():

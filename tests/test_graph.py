@@ -171,6 +171,13 @@ def test_replay_and_offline_diagnose_agree_with_the_live_run(live, replay, tmp_p
                     "--json", str(out)], check=True, cwd=ROOT)
     off = json.loads(out.read_text())
     assert off["isolated_faults"] == ["leak_ic_engine"]
+    # the live bank exchanged batched vectors; the bag holds them one per message, as recorded
+    from fdi_ros import bag as bagmod
+
+    topics = bagmod.topics(bag_dir)
+    assert "/fdi/residuals" in topics and "/fdi/features" in topics
+    assert not set(topics) & {"/fdi/feature_blocks", "/fdi/residual_blocks"}, sorted(topics)
+    assert {r.model_id for r in bagmod.read_residuals(bag_dir)} >= {"nominal", "leak_ic_engine"}
     assert abs(off["isolation_time_s"] - run.isolation_t) <= SEGMENT_S + 1e-9
     # live replay of the recorded sensor blocks through preprocessor, bank and supervisor
     rep, _ = replay

@@ -28,8 +28,10 @@ from fdi_ros.nodes.common import (
     run_node,
 )
 
-# Known types we can record; topics carrying them are picked up wherever they appear.
-RECORDABLE = {**msgs.TOPICS, "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
+# Known types we can record; topics carrying them are picked up wherever they appear (the
+# batched transport topics only when asked for: their vectors are on the per-vector topics).
+RECORDABLE = {**{t: v for t, v in msgs.TOPICS.items() if t not in msgs.BATCHED_TOPICS},
+              "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
               "/clock": "rosgraph_msgs/msg/Clock"}
 
 
@@ -65,7 +67,8 @@ class RecorderNode(Node):
                 self.get_logger().warn(f"topic {t}: type unknown until it appears in the graph")
         self._extra = set(extra)
         for topic, typ in msgs.TOPICS.items():
-            self._subscribe(topic, typ)
+            if topic in RECORDABLE or topic in self._extra:
+                self._subscribe(topic, typ)
         self._subscribe("/diagnostics", RECORDABLE["/diagnostics"])
         self.create_timer(float(self.get_parameter("scan_period_s").value), self._scan)
         self.get_logger().info(f"recording to {path}")
@@ -80,7 +83,7 @@ class RecorderNode(Node):
 
     def _scan(self) -> None:
         for topic, types in self.get_topic_names_and_types():
-            if topic in self._subs:
+            if topic in self._subs or topic in msgs.BATCHED_TOPICS and topic not in self._extra:
                 continue
             for typ in types:
                 if (topic in self._extra or typ.startswith(f"{msgs.PACKAGE}/")

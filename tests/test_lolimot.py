@@ -210,3 +210,29 @@ def test_stack_equals_each_map_predicting_alone():
     assert np.isnan(got[3]).all()
     with pytest.raises(ValueError):
         LolimotStack([])
+
+
+def test_region_from_all_identification_data(tmp_path):
+    """set_region: the identified region reaches rows the model was scored on beyond the
+    training box (and only where there were rows); it survives save/load, and a model file
+    without it keeps the training box."""
+    rng = np.random.default_rng(int(np.random.SeedSequence().entropy % 2**32))
+    X = np.column_stack([rng.uniform(0, 10, 3000), rng.uniform(0, 1, 3000)])
+    y = X[:, 0] * X[:, 1]
+    train = X[:, 0] < 9.0
+    m = Lolimot(max_models=6)
+    m.fit(X[train], y[train])
+    probe = np.array([[9.5, 0.5], [5.0, 0.5], [11.0, 0.5]])
+    assert m.in_region(probe).tolist() == [False, True, False]
+    before = m.predict(probe)
+    m.set_region(X)
+    assert m.in_region(probe).tolist() == [True, True, False]
+    assert np.array_equal(m.predict(probe), before)  # the model itself is unchanged
+    path = m.save(tmp_path / "m.npz")
+    back = Lolimot.load(path)
+    assert back.in_region(probe).tolist() == [True, True, False]
+    old = {k: v for k, v in m.to_arrays().items() if not k.startswith("region_")}
+    old["coverage"] = np.ones((16, 16), dtype=bool)  # a file written before set_region
+    assert Lolimot.from_arrays(old).in_region(probe).tolist() == [False, True, False]
+    with pytest.raises(ValueError):
+        m.set_region(np.full((3, 2), np.nan))

@@ -113,6 +113,10 @@ class _Fitted(NamedTuple):
     hi: FloatArray        # (M, p) cell upper bounds
     theta: FloatArray     # (M, p + 1) [intercept, slopes] in z
     coverage: BoolArray
+    # the identified region's box in z (None: the training box [0, 1]); the coverage grid
+    # spans it (see Lolimot.set_region)
+    region_lo: FloatArray | None = None
+    region_hi: FloatArray | None = None
 
 
 def _log_mu(Z: FloatArray, lo: FloatArray, hi: FloatArray, k_sigma: float) -> FloatArray:
@@ -441,12 +445,30 @@ class Lolimot:
         st = self._fitted()
         return self._validity(self._scaled(X), st.lo, st.hi)
 
-    def in_region(self, X: ArrayLike) -> BoolArray:
-        """True where x lies inside the training data's bounding box and in a coverage bin
-        that held training data (the identified region)."""
+    def set_region(self, X: ArrayLike) -> None:
+        """The identified region from all of the identification data ``X`` (training,
+        validation and test rows: the model was fitted on some and scored on the others): its
+        bounding box joined with the training box, and the coverage grid over that box from
+        every row. Without it the region is the training data's."""
+        st = self._fitted()
         Z = self._scaled(X)
+        Z = Z[np.all(np.isfinite(Z), axis=1)]
+        if Z.shape[0] == 0:
+            raise ValueError("set_region needs finite rows")
+        lo = np.minimum(Z.min(axis=0), 0.0)
+        hi = np.maximum(Z.max(axis=0), 1.0)
+        self._state = st._replace(coverage=self._coverage_grid((Z - lo) / (hi - lo)),
+                                  region_lo=lo, region_hi=hi)
+
+    def in_region(self, X: ArrayLike) -> BoolArray:
+        """True where x lies inside the identification data's bounding box and in a coverage
+        bin that held identification data (the identified region; :meth:`set_region`)."""
+        st = self._fitted()
+        Z = self._scaled(X)
+        if st.region_lo is not None and st.region_hi is not None:
+            Z = (Z - st.region_lo) / (st.region_hi - st.region_lo)
         ok: BoolArray = np.all(np.isfinite(Z), axis=1) & np.all((Z >= 0.0) & (Z <= 1.0), axis=1)
-        grid = self._fitted().coverage
+        grid = st.coverage
         bins = grid.shape[0]
         if grid.size == 1:
             return ok
@@ -480,7 +502,8 @@ class Lolimot:
 
     @property
     def coverage(self) -> BoolArray:
-        """Boolean coverage grid (coverage_bins per input) over the training bounding box."""
+        """Boolean coverage grid (coverage_bins per input) over the identified region's box
+        (the training data's, or all identification data's after :meth:`set_region`)."""
         return self._fitted().coverage.copy()
 
     @property
@@ -512,8 +535,10 @@ class Lolimot:
                 "coverage_min_count": self.coverage_min_count,
                 "compress_bins": self.compress_bins, "coverage_inputs": self.coverage_inputs,
                 "input_names": list(self.input_names), "output_name": self.output_name}
+        region = {} if st.region_lo is None or st.region_hi is None else {
+            "region_lo": st.region_lo, "region_hi": st.region_hi}
         return {"x_min": st.x_min, "x_scale": st.x_scale, "lo": st.lo, "hi": st.hi,
-                "theta": st.theta, "coverage": st.coverage,
+                "theta": st.theta, "coverage": st.coverage, **region,
                 "meta": np.array(json.dumps(meta))}
 
     @classmethod
@@ -528,7 +553,11 @@ class Lolimot:
                          lo=np.asarray(arrays["lo"], dtype=float),
                          hi=np.asarray(arrays["hi"], dtype=float),
                          theta=np.asarray(arrays["theta"], dtype=float),
-                         coverage=np.asarray(arrays["coverage"], dtype=bool))
+                         coverage=np.asarray(arrays["coverage"], dtype=bool),
+                         region_lo=(np.asarray(arrays["region_lo"], dtype=float)
+                                    if "region_lo" in arrays else None),
+                         region_hi=(np.asarray(arrays["region_hi"], dtype=float)
+                                    if "region_hi" in arrays else None))
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"not a LOLIMOT model file: {exc}") from exc
         p = st.x_min.shape[0]

@@ -547,6 +547,7 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
                 m = cfg.lolimot()
                 res = m.fit(X[ktr], vals[ktr], X_val=X[kva], y_val=vals[kva],
                             progress=progress, input_names=inputs, output_name=name)
+                m.set_region(X[np.concatenate([ktr, kva, kte])])
                 models[name], results[name] = m, res
                 tab = _table(m, bps, inputs, name)
                 if tab is not None:
@@ -573,6 +574,9 @@ def identify_reference_models(data: Mapping[str, np.ndarray], *,
         m = cfg.lolimot()
         res = m.fit(X[ktr], y[ktr], X_val=X[kva], y_val=y[kva], progress=progress,
                     input_names=inputs, output_name=k)
+        # the identified region: every segment of the cycle (trained on or scored on), so the
+        # region reaches the cycle's ends (its top speed fell in held-out blocks)
+        m.set_region(X)
         models[k], results[k] = m, res
         tab = _table(m, bps, inputs, k)
         if tab is not None:

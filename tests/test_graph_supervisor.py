@@ -14,6 +14,7 @@ import pytest
 import yaml
 
 from fdi_ros.livegraph import run_live
+from fdi_ros.nodes.common import DATA_QOS
 
 pytestmark = [pytest.mark.graph, pytest.mark.slow]
 
@@ -34,6 +35,26 @@ def _scenario(tmp: Path, *, faults: bool, duration: float) -> Path:
     out = tmp / "scenario.yaml"
     out.write_text(yaml.safe_dump(sc))
     return out
+
+
+def _fake_features(index: int):
+    import numpy as np
+
+    from fdi_ros.core.types import FeatureVector
+
+    return FeatureVector(plant="diesel", index=index, t_start=0.01 * index,
+                         t_end=0.01 * index + 0.01, alpha_start=0.0, valid=True, status="",
+                         names=("n", "rho2"), units=("rpm", "kg/m^3"),
+                         values=np.array([2000.0, 1.5]))
+
+
+def _fake_residuals(model_id: str, index: int):
+    import numpy as np
+
+    from fdi_ros.core.types import ResidualVector
+
+    return ResidualVector(model_id=model_id, index=index, t=0.01 * index, valid=True, status="",
+                          names=("r_eta",), units=("1",), values=np.array([0.5]), norm=1.0)
 
 
 def _statuses(w, name: str) -> list:
@@ -88,6 +109,23 @@ def test_external_deactivate_and_frozen_preprocessor_fault_free(diesel_bank, tmp
             req = ChangeState.Request()
             req.transition.id = 4  # deactivate
             done["external"] = done["client"].call_async(req)
+        if "pokers" not in done:  # malformed batched messages, as by hand, once matched
+            from fdi_ros import msgs
+
+            fac = msgs.MessageFactory("rclpy")
+            fb = fac.feature_blocks([_fake_features(i) for i in (1, 2)], block_index=10**6)[0]
+            fb.values = fb.values[:-1]
+            rb = fac.residual_blocks([_fake_residuals("nominal", i) for i in (1, 2)])[0]
+            rb.status = rb.status[:1]
+            done["pokers"] = [(w.node.create_publisher(type(m), t, DATA_QOS), m) for t, m in (
+                ("/fdi/feature_blocks", fb), ("/fdi/residual_blocks", rb))]
+        if "poked" not in done and d.t >= 4.0 and all(
+                p.get_subscription_count() > 0 for p, _ in done["pokers"]):
+            for p, m in done["pokers"]:
+                p.publish(m)
+            done["poked"] = d.t
+        if "poked" in done and "alive" not in done and d.t >= done["poked"] + 1.0:
+            done["alive"] = graph.alive()
         if "stop" not in done and d.t >= 7.0:
             os.kill(graph.node("fdi_preprocessor").proc.pid, signal.SIGSTOP)
             done["stop"] = time.monotonic()
@@ -102,6 +140,9 @@ def test_external_deactivate_and_frozen_preprocessor_fault_free(diesel_bank, tmp
     run, w = run_live(CONFIG, scenario=_scenario(tmp_path, faults=False, duration=14.0),
                       during=during, timeout_s=120, hosting=TWO_HOSTS)
     assert done["external"].done() and done["external"].result().success
+    # the malformed blocks were dropped: every node alive, the data diagnosed to its end
+    assert "alive" in done and all(done["alive"].values()), done
+    assert run.ended
     bad_policy, bad_t0, good_t0 = (r.results[0] for r in done["params"])
     assert not bad_policy.successful and "policy" in bad_policy.reason
     assert not bad_t0.successful and "t0_s" in bad_t0.reason and good_t0.successful

@@ -118,3 +118,16 @@ def test_shared_parity_residuals_equal_per_model(diesel_reference_dir):
             assert got.model_id == mid and got.valid == want.valid
             assert got.status == want.status
             got.values[:] = -1.0  # a model changing its copy changes nobody else's
+
+
+def test_bench_pace_gives_the_segment_rate_asked():
+    """bench graph above the plant's speed range: the plant at its top speed, plant time
+    faster by rpm / top, so the graph sees rpm / 30 segments per wall second."""
+    from fdi_ros.commands.bench_graph import plant_pace
+    from fdi_ros.plants.diesel.plant import SPEED_RANGE_RPM
+
+    top = SPEED_RANGE_RPM[1]
+    assert plant_pace(3600.0) == (3600.0, 1.0)
+    assert plant_pace(top) == (top, 1.0)
+    rpm, pace = plant_pace(6000.0)
+    assert rpm == top and abs(rpm * pace / 30.0 - 200.0) < 1e-9

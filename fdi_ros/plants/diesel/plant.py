@@ -91,6 +91,7 @@ FAULT_LIMITS = {"crankcase_vent_open": (0.0, 40.0), "leak_ic_engine": (0.0, 40.0
 CHANNELS = ("n", "p2", "T2", "maf", "fuel", "egr_cmd", "swirl_cmd", "vgt")
 UNITS = ("rpm", "Pa", "K", "kg/h", "mg/stroke", "1", "1", "1")
 PLANT_ID = "diesel"
+SPEED_RANGE_RPM = (300.0, 5500.0)  # the engine's speed range (5500: its fuel cut-off)
 TRUTH_LOG_KEYS = ("t", "n", "fuel", "egr_cmd", "swirl_cmd", "vgt_cmd", "eta_v", "m_maf",
                   "m_cyl", "m_egr", "m_leak", "m_vent", "m_bb", "m_c", "p1", "p_ic", "p2", "p3",
                   "T2", "T2s", "rho2", "vgt_pos", "w_tc", "p2_sp", "u_vent", "u_leak",
@@ -441,8 +442,9 @@ class DieselIntakePlant:
         vals = dict(n=float(n), fuel=float(fuel), egr_cmd=float(egr), swirl_cmd=float(swirl))
         if not all(np.isfinite(v) for v in vals.values()):
             raise ValueError(f"inputs must be finite: {vals}")
-        if not 300.0 <= vals["n"] <= 5500.0:
-            raise ValueError(f"engine speed {vals['n']} rpm outside 300..5500 rpm")
+        lo, hi = SPEED_RANGE_RPM
+        if not lo <= vals["n"] <= hi:
+            raise ValueError(f"engine speed {vals['n']} rpm outside {lo:g}..{hi:g} rpm")
         if not 0.0 <= vals["fuel"] <= 60.0:
             raise ValueError(f"fuel {vals['fuel']} mg/stroke outside 0..60")
         for k in ("egr_cmd", "swirl_cmd"):

@@ -339,7 +339,13 @@ class Lolimot:
         B = self.compress_bins
         idx = np.clip((Z * B).astype(np.int64), 0, B - 1)
         flat = np.ravel_multi_index(tuple(idx.T), (B,) * Z.shape[1])
-        _, inv = np.unique(flat, return_inverse=True)
+        # the occupied bins in ascending order (np.unique's, by counting: no sort)
+        counts = np.bincount(flat, minlength=B ** Z.shape[1]) if B ** Z.shape[1] <= 4 * \
+            flat.size + 65536 else None
+        if counts is None:
+            _, inv = np.unique(flat, return_inverse=True)
+        else:
+            inv = (np.cumsum(counts > 0) - 1)[flat]
         w = np.bincount(inv).astype(float)
         Zp = np.column_stack([np.bincount(inv, weights=Z[:, d]) for d in range(Z.shape[1])])
         return Zp / w[:, None], np.bincount(inv, weights=y) / w, w

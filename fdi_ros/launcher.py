@@ -380,10 +380,14 @@ def run_until_interrupted(graph: Graph, *, respawn: RespawnPolicy | None = None,
                     del due[name]
                     graph.start_node(name)
             if watcher is not None:
-                if end_seen_at is None and watcher.seen.end_of_data:
+                ended = run_ended(watcher.seen)
+                # the supervisor's end names the source's end: its own message (another topic)
+                # can reach this watcher after the end of the diagnosis
+                if end_seen_at is None and (watcher.seen.end_of_data or ended):
                     end_seen_at = now
-                    log("end of data: waiting for the last segment's diagnosis")
-                if run_ended(watcher.seen):
+                    log("end of data" + ("" if ended else
+                                         ": waiting for the last segment's diagnosis"))
+                if ended:
                     log("end of the diagnosis: every segment of the data diagnosed")
                     break
                 if end_seen_at is not None and now - end_seen_at > END_TIMEOUT_S:

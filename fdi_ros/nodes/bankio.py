@@ -99,19 +99,19 @@ def supervisor_inputs(batched: bool) -> tuple[tuple[str, Any, Callable[[Any], li
             (f_t, Features, lambda m: [msgs.to_features(m)]))
 
 
-def fed(node: Any, convert: Callable[[Any], list], feed: Callable[[Any, float], list]
-        ) -> Callable[[Any], None]:
+def fed(logger: Any, convert: Callable[[Any], list], feed: Callable[[Any, float], list],
+        do: Callable[[list], None]) -> Callable[[Any], None]:
     """A subscription callback of the supervisor: the message's vectors (``convert``) fed to
-    the core one by one, the core's actions done by ``node._do``; a malformed message is
-    dropped and logged, never fatal."""
+    the core one by one (``feed(vector, wall time)``), the core's actions done by ``do``; a
+    malformed message is dropped and logged, never fatal."""
     import time
 
     def callback(m: Any) -> None:
         try:
             recs = convert(m)
         except (ValueError, TypeError, KeyError, IndexError) as exc:
-            node.get_logger().warn(f"malformed message dropped: {exc}")
+            logger.warn(f"malformed message dropped: {exc}")
             return
         for rec in recs:
-            node._do(feed(rec, time.monotonic()))
+            do(feed(rec, time.monotonic()))
     return callback

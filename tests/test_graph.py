@@ -157,10 +157,8 @@ def test_frozen_model_reported_silent_then_back(live):
 def replay(live):
     """The recorded sensor blocks replayed through preprocessor, bank and supervisor at 4 x
     real time: faster than the graph can follow, so the replay is held back by the diagnosis
-    (the replayer's max_ahead_s). The bank and the supervisor exchange one vector per message
-    here (``batched:=false``), the live run a sensor block per message: both paths give the
-    same diagnosis."""
-    return run_live(CONFIG, replay=live[2], realtime_factor=4.0, timeout_s=150, batched=False)
+    (the replayer's max_ahead_s)."""
+    return run_live(CONFIG, replay=live[2], realtime_factor=4.0, timeout_s=150)
 
 
 def test_replay_and_offline_diagnose_agree_with_the_live_run(live, replay, tmp_path):

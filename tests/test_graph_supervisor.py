@@ -199,8 +199,10 @@ def test_fault_memory_survives_a_killed_supervisor(diesel_bank, tmp_path, monkey
         done["clear"] = _call(w, cli, ClearFaults.Request(faults=[]), "clear all")
         done["cleared"] = faults(w)["leak_ic_engine"]
 
+    # the bank and the supervisor exchange one vector per message here (batched:=false, the
+    # path of model nodes that publish only Residuals); the other graph tests run batched
     run, w = run_live(CONFIG, scenario=_scenario(tmp_path, faults=True, duration=9.0),
-                      during=during, timeout_s=120, hosting=TWO_HOSTS)
+                      during=during, timeout_s=120, hosting=TWO_HOSTS, batched=False)
     before, after = done["before"], done["after"]
     assert run.ended  # ended by the data, though the supervisor was killed mid-run
     assert before.status == after.status == "CONFIRMED"

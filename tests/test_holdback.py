@@ -54,3 +54,18 @@ def test_a_stuck_diagnosis_is_not_waited_for_and_nan_never_held():
     assert not any(off.hold(t, 0.0) for t in (0.0, 10.0, 100.0))
     unwatched = HoldBack(ahead_s=0.5)
     assert not any(unwatched.hold(t, 0.0, watched=False) for t in (0.0, 10.0))
+
+
+def test_the_first_diagnosis_is_waited_for_longer_than_a_stuck_one():
+    """A graph whose first diagnosis takes longer than stuck_s (a loaded machine at start-up)
+    still holds the data, up to start_s; a diagnosis that stops later is waited for stuck_s
+    only."""
+    h = HoldBack(ahead_s=0.5, stuck_s=1.0, start_s=4.0)
+    assert not h.hold(0.0, 0.0)  # the first block starts the data
+    assert h.hold(1.0, 0.1) and h.hold(1.0, 3.9)  # no diagnosis yet: still held at 3.9 s
+    assert not h.hold(1.0, 4.2)  # and given up after start_s
+    h = HoldBack(ahead_s=0.5, stuck_s=1.0, start_s=4.0)
+    assert not h.hold(0.0, 0.0)
+    h.diagnosis(0.2, 0.05)
+    assert h.hold(1.0, 0.1) and not h.hold(1.0, 1.2)  # stuck 1 s after its first diagnosis
+

@@ -120,6 +120,39 @@ def test_shared_parity_residuals_equal_per_model(diesel_reference_dir):
             got.values[:] = -1.0  # a model changing its copy changes nobody else's
 
 
+def test_block_parity_residuals_equal_segment_by_segment(diesel_reference_dir):
+    """residual_vectors (a sensor block's segments in one evaluation, what prefetch fills the
+    shared cache with) gives each segment's residual_vector: values to rounding, validity,
+    status and regime exactly, for blocks with invalid and out-of-region segments."""
+    from fdi_ros.core.types import FeatureVector
+    from fdi_ros.plants.diesel.reference import ReferenceModelSet
+    from fdi_ros.plants.diesel.symptoms import residual_vector, residual_vectors
+
+    models = ReferenceModelSet.load(diesel_reference_dir)
+    seed = int(np.random.SeedSequence().entropy % 2**32)
+    rng = np.random.default_rng(seed)
+    names = ("n", "rho2", "eta_v", "maf_amp", "maf_phase", "p2_amp", "p2_phase", "p2",
+             "fuel", "egr_cmd", "swirl_cmd")
+    base = np.array([2000.0, 1.6, 0.84, 20.0, 10.0, 0.05, 5.0, 1.5e5, 20.0, 0.0, 0.0])
+    for _ in range(10):
+        block = []
+        for i in range(int(rng.integers(1, 8))):
+            vals = base * (1 + 0.3 * rng.standard_normal(base.size))
+            vals[9] = rng.choice([0.0, 0.0, 0.4])  # EGR open: outside the region
+            if rng.random() < 0.1:
+                vals[1] = np.nan
+            block.append(FeatureVector(
+                plant="diesel", index=i, t_start=0.015 * i, t_end=0.015 * (i + 1),
+                alpha_start=180.0 * i, valid=bool(rng.random() < 0.85),
+                status="", names=names, units=("",) * len(names), values=vals))
+        got = residual_vectors(models, block, model_id="a")
+        for fv, g in zip(block, got, strict=True):
+            w = residual_vector(models, fv, model_id="a")
+            assert (g.valid, g.status, g.regime, g.index) == (w.valid, w.status, w.regime,
+                                                              w.index), seed
+            np.testing.assert_allclose(g.values, w.values, rtol=1e-10, atol=1e-12)
+
+
 def test_bench_pace_gives_the_segment_rate_asked():
     """bench graph above the plant's speed range: the plant at its top speed, plant time
     faster by rpm / top, so the graph sees rpm / 30 segments per wall second."""

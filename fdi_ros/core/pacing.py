@@ -75,11 +75,15 @@ class HoldBack:
     the replay back instead of skipping segments, and every segment is diagnosed as offline
     however high the rate. A diagnosis that has not moved for ``stuck_s`` wall seconds (a
     model that stopped answering) is not waited for (health only): the data goes on and the
-    supervisor's plant-time rules decide. ``ahead_s`` 0: never wait.
+    supervisor's plant-time rules decide. Before the first diagnosis the graph gets
+    ``start_s`` instead (its first answers can take seconds on a loaded machine; the start-up
+    handshake has already made sure every part is there). ``ahead_s`` 0: never wait.
     """
 
-    def __init__(self, ahead_s: float = 1.0, stuck_s: float = 3.0) -> None:
+    def __init__(self, ahead_s: float = 1.0, stuck_s: float = 3.0,
+                 start_s: float = 15.0) -> None:
         self.ahead_s, self.stuck_s = float(ahead_s), float(stuck_s)
+        self.start_s = float(start_s)
         self.diag_t = self._diag_wall = -math.inf
         self._first: float | None = None  # plant time of the first block
         self._since: float | None = None  # wall time the data started to wait
@@ -100,7 +104,8 @@ class HoldBack:
             self._since = None
             return False
         since = self._since = wall if self._since is None else self._since
-        if wall - max(since, self._diag_wall) > self.stuck_s:
+        limit = self.stuck_s if math.isfinite(self._diag_wall) else self.start_s
+        if wall - max(since, self._diag_wall) > limit:
             return False
         self.held += 1
         return True

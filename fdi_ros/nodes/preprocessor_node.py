@@ -16,6 +16,7 @@ Parameters: ``plant`` (a registered plant id; required).
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 from rclpy.node import Node
@@ -23,6 +24,8 @@ from rclpy.node import Node
 from fdi_ros import msgs
 from fdi_ros.nodes.common import DATA_IN_QOS, DATA_QOS, Param, declare_params, run_node
 from fdi_ros.nodes.endofdata import EndOfFeatures
+
+HOLD_MAX_S = 5.0  # wall s the first vectors wait for the graph's readers to be matched
 
 PARAMS = (Param("plant", "", "plant id of the plant registry: which "
                 "preprocessor turns sensor blocks into feature vectors", read_only=True),)
@@ -44,10 +47,19 @@ class PreprocessorNode(Node):
         self._last_index: int | None = None
         self._end = EndOfFeatures(self)
         self._last_features = -1
+        # the first vectors wait until every reader the graph shows is matched (a reader seen
+        # by discovery before its writer matched it would miss them), HOLD_MAX_S at most
+        self._held: list[tuple[Any, Any, int]] | None = []
+        self._held_since = 0.0
+        self._held_blocks = 0
+        self._hold_timer = self.create_timer(0.02, self._release)
 
     def _on_block(self, m: Any) -> None:
         self._push(m)
-        self._end.block(self._last_features)
+        if self._held is None:
+            self._end.block(self._last_features)
+        else:  # counted once its vectors are out (the end is said after them)
+            self._held_blocks += 1
 
     def _push(self, m: Any) -> None:
         try:
@@ -67,11 +79,41 @@ class PreprocessorNode(Node):
                                     "restarting segmentation")
             self.pre.reset()
             return
-        for fv in feats:
-            self._pub.publish(self._fac.features(fv))
-            self._last_features = fv.index
-        for m in self._fac.feature_blocks(feats, block.index):
-            self._pub_blocks.publish(m)
+        out = [(self._pub, self._fac.features(fv), fv.index) for fv in feats]
+        out += [(self._pub_blocks, m, feats[-1].index)
+                for m in self._fac.feature_blocks(feats, block.index)]
+        if self._held is None:
+            self._send(out)
+        else:
+            self._held_since = self._held_since or time.monotonic()
+            self._held += out
+            self._release()
+
+    def _release(self) -> None:
+        if self._held is None:
+            return
+        unmatched = [t for p, t in ((self._pub, "/fdi/features"),
+                                    (self._pub_blocks, "/fdi/feature_blocks"))
+                     if p.get_subscription_count() < self.count_subscribers(t)]
+        late = bool(self._held) and time.monotonic() - self._held_since > HOLD_MAX_S
+        if unmatched and not late:
+            return
+        if unmatched:
+            self.get_logger().warn(f"readers of {unmatched} not matched after {HOLD_MAX_S:g} "
+                                   "s; sending anyway")
+        elif self._held:
+            self.get_logger().info(f"first vectors held {time.monotonic() - self._held_since:.3f}"
+                                   " s until every reader of them was matched")
+        held, self._held = self._held, None
+        self.destroy_timer(self._hold_timer)
+        self._send(held)
+        for _ in range(self._held_blocks):
+            self._end.block(self._last_features)
+
+    def _send(self, out: list[tuple[Any, Any, int]]) -> None:
+        for pub, m, index in out:
+            pub.publish(m)
+            self._last_features = max(self._last_features, index)
 
 
 def main(args: list[str] | None = None) -> int:

@@ -301,8 +301,7 @@ def test_start_gate_names_what_is_missing_until_every_reader_is_there(tmp_path, 
     cfg_file = tmp_path / "config" / "toy.yaml"
     cfg_file.parent.mkdir(exist_ok=True)
     cfg_file.write_text(TOY)
-    core = SupervisorCore(load_graph_config(cfg_file))
-    core.batched = batched
+    core = SupervisorCore(load_graph_config(cfg_file), batched=batched)
     f_t, r_t = DATA_TOPICS[batched]
     online = list(core.diag.models_online)
     nodes = [core.driver.nodes[m].node for m in online]

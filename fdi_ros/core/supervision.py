@@ -332,9 +332,9 @@ class SupervisorCore:
     def __init__(self, cfg: Any, *, policy: Any = None, lag_s: float = 2.0,
                  stale_s: float = 0.5, stale_wall_s: float = 2.0, model_wall_s: float = 1.0,
                  confirm_s: float = 0.1, heal_s: float = 5.0, store: Any = None,
-                 snapshot_s: float = 5.0) -> None:
+                 snapshot_s: float = 5.0, batched: bool = True) -> None:
         self.cfg = cfg
-        self.batched = True  # the bank's vectors a sensor block per message (DATA_TOPICS)
+        self.batched = batched  # the bank's vectors a sensor block per message (DATA_TOPICS)
         self.diag = Diagnoser(cfg)
         self.driver = BankDriver([(e.id, e.node_name) for e in cfg.bank], policy)
         self.driver.set_desired(self.diag.models_online)
@@ -390,8 +390,7 @@ class SupervisorCore:
                    lag_s=p["lag_s"], stale_s=p["stale_s"], stale_wall_s=p["stale_wall_s"],
                    model_wall_s=p["model_wall_s"], confirm_s=p["confirm_s"],
                    heal_s=p["heal_s"], store=FaultStore(state / f"{cfg.plant}_faults.sqlite"),
-                   snapshot_s=p["snapshot_s"])
-        core.batched = bool(p.get("batched", True))
+                   snapshot_s=p["snapshot_s"], batched=bool(p.get("batched", True)))
         core.set("t0_s", p["t0_s"])
         core.set("explain_norm", p["explain_norm"])
         if core.diag.symptom_gen is not None:

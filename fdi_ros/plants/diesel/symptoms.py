@@ -230,38 +230,25 @@ def residual_vector(models: ReferenceModelSet, fv: FeatureVector, *, model_id: s
     ``norm`` is the RMS of the residuals centred and divided by their fault-free scale (NaN
     when invalid or without a scale).
     """
-    status = ""
     try:
-        data = {k: np.array([fv.get(k)]) for k in FEATURES}
+        for k in FEATURES:
+            fv.get(k)
     except KeyError as exc:
-        data, status = None, f"feature missing: {exc}"
-    valid = bool(fv.valid) and data is not None
-    regime = models.regime
-    if data is not None:
-        data.update({k: np.array([fv.get(k)]) for k in model_features(models)[len(FEATURES):]
-                     if k in fv.names})
-        R, ok, regimes = parity(models, data)
-        r, regime = R[0], str(regimes[0])
-        if not fv.valid:
-            status = fv.status or "features not valid"
-        elif not ok[0]:
-            valid = False
-            status = region_status(models, data, ok)[0] or "residuals not finite"
-    else:
-        r = np.full(len(RESIDUALS), np.nan)
-    norm = float("nan")
-    if valid and scale is not None:
-        z = (r - np.asarray(centre if centre is not None else 0.0)) / np.asarray(scale)
-        norm = float(np.sqrt(np.mean(z ** 2)))
-    return ResidualVector(model_id=model_id, index=fv.index, t=fv.t_end, valid=valid,
-                          status=status, names=RESIDUALS, units=RESIDUAL_UNITS,
-                          values=np.asarray(r, dtype=float), norm=norm, regime=regime)
+        return ResidualVector(model_id=model_id, index=fv.index, t=fv.t_end, valid=False,
+                              status=f"feature missing: {exc}", names=RESIDUALS,
+                              units=RESIDUAL_UNITS, values=np.full(len(RESIDUALS), np.nan),
+                              norm=float("nan"), regime=models.regime)
+    rv = residual_vectors(models, [fv], model_id=model_id)[0]
+    if rv.valid and scale is not None:
+        z = (rv.values - np.asarray(centre if centre is not None else 0.0)) / np.asarray(scale)
+        rv = replace(rv, norm=float(np.sqrt(np.mean(z ** 2))))
+    return rv
 
 
 def residual_vectors(models: ReferenceModelSet, fvs: Sequence[FeatureVector], *,
                      model_id: str = "nominal") -> list[ResidualVector]:
-    """:func:`residual_vector` of several feature vectors with the same names (a sensor
-    block's segments), the reference models evaluated once for all of them."""
+    """:func:`residual_vector` of several feature vectors (a sensor block's segments), the
+    reference models evaluated once for all of them when they have the same names."""
     fvs = list(fvs)
     if not fvs or any(fv.names != fvs[0].names for fv in fvs) or \
             any(k not in fvs[0].names for k in FEATURES):

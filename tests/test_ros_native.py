@@ -296,3 +296,33 @@ def test_every_node_describes_its_own_parameters(tmp_path):
         for p in procs:
             stop(p)
         ros.close()
+
+
+def test_wall_timers_run_while_plant_time_stands_still():
+    """A node on plant time (use_sim_time) with no /clock: its health and start-up timers
+    (nodes.common.wall_timer) still run; a timer on the node's ROS clock does not (the
+    preprocessor's start-up hold ran on it once and waited for a /clock that the held-back
+    source does not publish)."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    from fdi_ros.nodes.common import wall_timer
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        node = rclpy.create_node("fdi_test_wall_timer", context=ctx, parameter_overrides=[
+            Parameter("use_sim_time", Parameter.Type.BOOL, True)])
+        fired = {"wall": 0, "ros": 0}
+        wall_timer(node, 0.02, lambda: fired.__setitem__("wall", fired["wall"] + 1))
+        node.create_timer(0.02, lambda: fired.__setitem__("ros", fired["ros"] + 1))
+        ex = SingleThreadedExecutor(context=ctx)
+        ex.add_node(node)
+        deadline = time.monotonic() + 20.0
+        while fired["wall"] < 10 and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.1)
+        assert fired == {"wall": 10, "ros": 0}, fired
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)

@@ -67,6 +67,9 @@ PARAMS = {  # name: (default, description, read_only, (min, max) or None)
 # wait_for_readers must read these; the bank's own topics depend on ``batched``
 GATE_TOPICS = ("/fdi/features", "/fdi/residuals", "/fdi/diagnosis")
 # (features, residuals) the supervisor and the bank exchange, batched or one vector per message
+# what the preprocessor writes: the supervisor names their readers when it says ready
+# (fdi_ros.nodes.startup.ready_messages), so the writer can hold its first vectors for them
+FEATURE_TOPICS = ("/fdi/features", "/fdi/feature_blocks")
 DATA_TOPICS = {True: ("/fdi/feature_blocks", "/fdi/residual_blocks"),
                False: ("/fdi/features", "/fdi/residuals")}
   # diagnostic_msgs/DiagnosticStatus levels

@@ -22,11 +22,11 @@ from rcl_interfaces.msg import (
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from fdi_ros.nodes.spin import DRAIN_S, ensure_loopback_env, run_node
+from fdi_ros.nodes.spin import DRAIN_S, ensure_loopback_env, run_node, wall_timer
 
 __all__ = ["DATA_IN_QOS", "DATA_QOS", "DRAIN_S", "LATCHED_QOS", "REQUEST_QOS", "ClockOut",
            "Param", "declare_params", "ensure_loopback_env", "follow_rate", "required",
-           "run_node"]
+           "run_node", "wall_timer"]
 
 # Data streams out: reliable, each writer keeps its last 500 messages for a reader behind.
 DATA_QOS = QoSProfile(depth=500, history=HistoryPolicy.KEEP_LAST,

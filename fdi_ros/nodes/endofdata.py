@@ -17,7 +17,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from fdi_ros.nodes.common import LATCHED_QOS
+from fdi_ros.nodes.common import LATCHED_QOS, wall_timer
 
 END_OF_DATA_TOPIC = "/fdi/end_of_data"
 END_OF_FEATURES_TOPIC = "/fdi/end_of_features"
@@ -57,7 +57,7 @@ class EndOfFeatures:
         self._said = False
         self._pub = node.create_publisher(Header, END_OF_FEATURES_TOPIC, LATCHED_QOS)
         node.create_subscription(Header, END_OF_DATA_TOPIC, self._on_end, LATCHED_QOS)
-        node.create_timer(0.25, self.check)
+        wall_timer(node, 0.25, self.check)
 
     def block(self, last_index: int) -> None:
         """A sensor block was handled; ``last_index``: the last feature index published. A

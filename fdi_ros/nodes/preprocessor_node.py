@@ -22,10 +22,20 @@ from typing import Any
 from rclpy.node import Node
 
 from fdi_ros import msgs
-from fdi_ros.nodes.common import DATA_IN_QOS, DATA_QOS, Param, declare_params, run_node
+from fdi_ros.core.handshake import parse_readers, unmatched_readers
+from fdi_ros.nodes.common import (
+    DATA_IN_QOS,
+    DATA_QOS,
+    LATCHED_QOS,
+    Param,
+    declare_params,
+    run_node,
+    wall_timer,
+)
 from fdi_ros.nodes.endofdata import EndOfFeatures
+from fdi_ros.nodes.startup import READY_TOPIC
 
-HOLD_MAX_S = 5.0  # wall s the first vectors wait for the graph's readers to be matched
+HOLD_MAX_S = 10.0  # wall s the first vectors wait for their readers to be matched
 
 PARAMS = (Param("plant", "", "plant id of the plant registry: which "
                 "preprocessor turns sensor blocks into feature vectors", read_only=True),)
@@ -36,6 +46,7 @@ class PreprocessorNode(Node):
         super().__init__("fdi_preprocessor")
         declare_params(self, PARAMS)
         from fdi_msgs.msg import FeatureBlock, Features, SensorBlock
+        from std_msgs.msg import Header
 
         from fdi_ros.plants import make_preprocessor
 
@@ -47,12 +58,19 @@ class PreprocessorNode(Node):
         self._last_index: int | None = None
         self._end = EndOfFeatures(self)
         self._last_features = -1
-        # the first vectors wait until every reader the graph shows is matched (a reader seen
-        # by discovery before its writer matched it would miss them), HOLD_MAX_S at most
+        # the first vectors wait until every reader of them is matched: those this node's
+        # graph shows and those the supervisor saw when it said ready (discovery reaches each
+        # process at its own pace; a reader not yet matched would miss them), HOLD_MAX_S at most
         self._held: list[tuple[Any, Any, int]] | None = []
         self._held_since = 0.0
         self._held_blocks = 0
-        self._hold_timer = self.create_timer(0.02, self._release)
+        self._hold_timer = wall_timer(self, 0.02, self._release)
+        self._needed: dict[str, set[str]] | None = None  # the readers the supervisor saw
+        self._ready_sub = self.create_subscription(Header, READY_TOPIC, self._on_ready,
+                                                   LATCHED_QOS)
+
+    def _on_ready(self, m: Any) -> None:
+        self._needed = parse_readers(m.frame_id) or self._needed
 
     def _on_block(self, m: Any) -> None:
         self._push(m)
@@ -90,20 +108,25 @@ class PreprocessorNode(Node):
             self._release()
 
     def _release(self) -> None:
-        if self._held is None:
+        if not self._held:  # nothing yet (the decision is taken with the first vectors)
             return
-        unmatched = [t for p, t in ((self._pub, "/fdi/features"),
-                                    (self._pub_blocks, "/fdi/feature_blocks"))
-                     if p.get_subscription_count() < self.count_subscribers(t)]
+        pubs = {"/fdi/features": self._pub, "/fdi/feature_blocks": self._pub_blocks}
+        unmatched = unmatched_readers(
+            self._needed, {t: [i.node_name for i in self.get_subscriptions_info_by_topic(t)]
+                           for t in pubs}, {t: p.get_subscription_count()
+                                            for t, p in pubs.items()})
+        if self._needed is None and self.count_publishers(READY_TOPIC):
+            unmatched.append("the readers the supervisor saw (on /fdi/ready)")
         late = bool(self._held) and time.monotonic() - self._held_since > HOLD_MAX_S
         if unmatched and not late:
             return
         if unmatched:
-            self.get_logger().warn(f"readers of {unmatched} not matched after {HOLD_MAX_S:g} "
-                                   "s; sending anyway")
+            self.get_logger().warn(f"after {HOLD_MAX_S:g} s still {'; '.join(unmatched)}; "
+                                   "sending anyway")
         elif self._held:
             self.get_logger().info(f"first vectors held {time.monotonic() - self._held_since:.3f}"
                                    " s until every reader of them was matched")
+        self.destroy_subscription(self._ready_sub)
         held, self._held = self._held, None
         self.destroy_timer(self._hold_timer)
         self._send(held)

@@ -139,3 +139,11 @@ def run_nodes(make_nodes: Callable[[], Sequence[Any]], *, executor: str = "singl
                 pass
         rclpy.try_shutdown()
     return code
+
+
+def wall_timer(node: Any, period_s: float, callback: Callable[[], Any]) -> Any:
+    """A timer on the steady clock, whatever ``use_sim_time`` says: health checks and holds
+    run while plant time stands still (no /clock from a source held back or ended)."""
+    from rclpy.clock import Clock, ClockType
+
+    return node.create_timer(period_s, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))

@@ -22,6 +22,7 @@ from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 
+from fdi_ros.core.handshake import readers_text
 from fdi_ros.core.pacing import HoldBack
 from fdi_ros.nodes.common import DATA_IN_QOS, LATCHED_QOS, Param
 from fdi_ros.nodes.endofdata import END_OF_DATA_TOPIC, end_message
@@ -42,6 +43,12 @@ SOURCE_PARAMS = (
           "back instead of skipping segments (0: never wait, a source that keeps real time "
           "whatever the graph does)", range=(0.0, 3600.0)),
 )
+
+
+def ready_messages(subs: Mapping[str, Any], Header: Any) -> list[Any]:
+    """What the supervisor sends on ``/fdi/ready`` when the graph is ready: who reads the
+    features (:func:`fdi_ros.core.handshake.readers_text`), then ``"ready"``."""
+    return [Header(frame_id=readers_text(subs)), Header(frame_id="ready")]
 
 
 class SourceGate:

@@ -22,11 +22,11 @@ from std_msgs.msg import Header
 
 from fdi_ros import bag, msgs
 from fdi_ros.core.bankdriver import ChangeState, GetState, Note
-from fdi_ros.core.supervision import GATE_TOPICS, PARAMS, Publish, SupervisorCore
+from fdi_ros.core.supervision import FEATURE_TOPICS, GATE_TOPICS, PARAMS, Publish, SupervisorCore
 from fdi_ros.nodes import bankio
 from fdi_ros.nodes import endofdata as eod
 from fdi_ros.nodes import startup as su
-from fdi_ros.nodes.common import DATA_IN_QOS, DATA_QOS, LATCHED_QOS, run_node
+from fdi_ros.nodes.common import DATA_IN_QOS, DATA_QOS, LATCHED_QOS, run_node, wall_timer
 
 
 class SupervisorNode(Node):
@@ -61,8 +61,8 @@ class SupervisorNode(Node):
         self.create_service(ClearFaults, "/fdi/clear_faults", self._clear_faults)
         self._gate: tuple[float, list] | None = (
             time.monotonic() + p["ready_timeout_s"], list(p["wait_for_readers"]))
-        self.create_timer(0.05, self._tick)
-        self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
+        wall_timer(self, 0.05, self._tick)
+        wall_timer(self, p["diagnostics_period_s"], self._publish_diagnostics)
         self.get_logger().info(f"fault memory {self.core.store.path} ({len(self.core.memory.records)} records)")  # noqa: E501
 
     def _tick(self) -> None:
@@ -70,7 +70,8 @@ class SupervisorNode(Node):
         self._do(self.core.tick(now, {i: c.service_is_ready() and g.service_is_ready() for i, (
             c, g) in self.clients_.items()}, {n for n, _ in self.get_node_names_and_namespaces()}))
         if self._gate is not None:  # the start-up handshake, until the source may start
-            pubs, subs = ({t: {i.node_name for i in f(t)} for t in (*GATE_TOPICS, *self._subs)}
+            pubs, subs = ({t: {i.node_name for i in f(t)} for t in {*GATE_TOPICS, *self._subs,
+                                                                    *FEATURE_TOPICS}}
                           for f in (self.get_publishers_info_by_topic,
                                     self.get_subscriptions_info_by_topic))
             self.core.waiting = self.core.waiting_for(pubs, subs, {
@@ -78,7 +79,8 @@ class SupervisorNode(Node):
             if not self.core.waiting or now > self._gate[0]:
                 self.get_logger().info("graph ready" if not self.core.waiting else "ready after "
                                        f"ready_timeout_s without: {'; '.join(self.core.waiting)}")
-                self.pub["ready"].publish(Header(frame_id="ready"))
+                for m in su.ready_messages({t: subs[t] for t in FEATURE_TOPICS}, Header):
+                    self.pub["ready"].publish(m)
                 self._gate = None
 
     def _on_end(self, m: Any) -> None:

@@ -343,6 +343,13 @@ def test_start_gate_names_what_is_missing_until_every_reader_is_there(tmp_path, 
         miss = core.waiting_for(pubs, subs, matched, readers)
         assert bool(miss) == need, (what, gone, miss)
         assert len(miss) <= 1, miss
+    # the supervisor's own diagnosis writer not yet matched to every reader the graph shows
+    # (a recorder seen but not yet matched would miss the first diagnoses)
+    written = {"/fdi/diagnosis": len(full_subs["/fdi/diagnosis"])}
+    assert core.waiting_for(full_pubs, full_subs, full_matched, readers, written) == []
+    written["/fdi/diagnosis"] -= 1
+    miss = core.waiting_for(full_pubs, full_subs, full_matched, readers, written)
+    assert len(miss) == 1 and "/fdi/diagnosis" in miss[0], miss
     # a refused model is out of the bank: not waited for
     core.driver.on_change_result(online[-1], False, 1.0, ACTIVE)
     less = {f_t: 1, r_t: len(nodes) - 1}

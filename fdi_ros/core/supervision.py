@@ -24,6 +24,7 @@ from typing import Any
 from fdi_ros.core.bankdriver import TIMEOUT, BankDriver, Note, label
 from fdi_ros.core.diagnoser import Diagnoser
 from fdi_ros.core.faultmemory import FaultMemory, FaultRecord
+from fdi_ros.core.handshake import unmatched_readers
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 # The supervisor's parameters: name: (default, description, read_only, (min, max) or None)
@@ -643,7 +644,8 @@ class SupervisorCore:
 
     # -- start-up handshake (graph state) -----------------------------------------------------
     def waiting_for(self, pubs: Mapping[str, Iterable[str]], subs: Mapping[str, Iterable[str]],
-                    matched: Mapping[str, int], readers: Iterable[str] = ()) -> list[str]:
+                    matched: Mapping[str, int], readers: Iterable[str] = (),
+                    written: Mapping[str, int] | None = None) -> list[str]:
         """What the graph still lacks before the data source may send its first block (empty:
         ready). The source's first segments must reach every part that decides, or the
         filters' warm-up (symptom debounce, hypothesis windows) would end at another segment
@@ -652,7 +654,11 @@ class SupervisorCore:
         ``pubs`` / ``subs``: node names publishing / reading each of :data:`GATE_TOPICS` as
         the graph shows them; ``matched``: the publishers *matched* to this node's own
         subscriptions (per topic); ``readers``: nodes that must read every gate topic (a
-        recorder), or ``"node:/topic"`` only that one (a watcher of the diagnosis).
+        recorder), or ``"node:/topic"`` only that one (a watcher of the diagnosis);
+        ``written``: the readers *matched* to this node's own publishers (per topic, e.g. the
+        diagnosis), each of which must cover the readers the graph shows of it (discovery
+        reaches each process at its own pace: a recorder seen but not yet matched would miss
+        the first diagnoses).
         Needed: every on-line model confirmed active (a model refused or in a state it cannot
         leave is out of the bank and not waited for), reading the features and publishing
         residuals (on :data:`DATA_TOPICS` of ``self.batched``), all of them matched here; the
@@ -680,7 +686,8 @@ class SupervisorCore:
             node, _, only = r.partition(":")
             out += [f"{node} reading {t}" for t in ((only,) if only else GATE_TOPICS)
                     if node not in set(subs.get(t, ()))]
-        return out
+        w = written or {}
+        return out + unmatched_readers(None, {t: subs.get(t, ()) for t in w}, w)
 
     # -- health (wall time) -------------------------------------------------------------------
     def tick(self, now: float, ready: dict[str, bool], present: AbstractSet[str] | None

@@ -70,12 +70,13 @@ class SupervisorNode(Node):
         self._do(self.core.tick(now, {i: c.service_is_ready() and g.service_is_ready() for i, (
             c, g) in self.clients_.items()}, {n for n, _ in self.get_node_names_and_namespaces()}))
         if self._gate is not None:  # the start-up handshake, until the source may start
-            pubs, subs = ({t: {i.node_name for i in f(t)} for t in {*GATE_TOPICS, *self._subs,
-                                                                    *FEATURE_TOPICS}}
-                          for f in (self.get_publishers_info_by_topic,
-                                    self.get_subscriptions_info_by_topic))
+            mine = {f"/fdi/{k}": self.pub[k].get_subscription_count()
+                    for k in ("diagnosis", "symptoms")}
+            pubs, subs = ({t: {i.node_name for i in f(t)} for t in {
+                *GATE_TOPICS, *self._subs, *FEATURE_TOPICS, *mine}} for f in (
+                    self.get_publishers_info_by_topic, self.get_subscriptions_info_by_topic))
             self.core.waiting = self.core.waiting_for(pubs, subs, {
-                t: s.get_publisher_count() for t, s in self._subs.items()}, self._gate[1])
+                t: s.get_publisher_count() for t, s in self._subs.items()}, self._gate[1], mine)
             if not self.core.waiting or now > self._gate[0]:
                 self.get_logger().info("graph ready" if not self.core.waiting else "ready after "
                                        f"ready_timeout_s without: {'; '.join(self.core.waiting)}")

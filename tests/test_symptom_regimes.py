@@ -128,3 +128,39 @@ def test_calibration_per_regime_equals_calibrating_each_regime_alone(tmp_path):
     assert load_thresholds(path) == cfg
     with pytest.raises(ValueError, match="regime 'x'"):
         SymptomConfig.from_dict({**cfg.to_dict(), "regimes": {"x": {"centre": [0, 0, 0]}}})
+
+
+def test_a_residual_not_judged_in_a_regime_never_gives_a_symptom_there(tmp_path):
+    """A regime judged on some residuals only (e.g. crank pulsations with the EGR valve open,
+    whose maps do not carry over): the others never give a symptom in it, however far they
+    go, while the judged ones and every residual of the other regimes keep the rule; the flag
+    survives the threshold file, and a malformed one is refused."""
+    import json
+    import random
+
+    seed = random.randrange(2**32)
+    rng = np.random.default_rng(seed)
+    base = _config(seed % 1000)
+    judged = (True, False, bool(rng.integers(2)))
+    st = {**base.regimes["open"], "judged": judged}
+    cfg = SymptomConfig(**{**base.__dict__, "regimes": {"open": st}})
+    back = SymptomConfig.from_dict(json.loads(json.dumps(cfg.to_dict())))
+    assert back == cfg and back.regimes["open"]["judged"] == judged
+    c, thr = cfg.statistics("open")
+    assert np.all(np.isinf(thr) == ~np.array(judged)), seed
+    n = 80
+    far = np.asarray(base.regimes["open"]["centre"]) + 50.0 * np.asarray(
+        base.regimes["open"]["threshold"]) * rng.choice([-1, 1], 3)
+    rvs = [_rv(i, far + rng.normal(0, 0.1, 3), regime="open" if i < n else "")
+           for i in range(2 * n)]
+    step = SymptomGenerator(cfg)
+    states = [step.update(rv) for rv in rvs]
+    assert [s.levels for s in states] == [s.levels for s in SymptomGenerator(cfg).run(rvs)]
+    for s in states[n // 2:n]:
+        assert all((lv != 0) == j for lv, j in zip(s.levels, judged)), (seed, s.levels)
+        assert all(np.isnan(r) != j for r, j in zip(s.residuals, judged)), (seed, s.residuals)
+    # the base regime judges every residual: the same values are symptoms there
+    assert all(lv != 0 for lv in states[-1].levels), (seed, states[-1].levels)
+    for bad in ((True, False), (1, 0, 1)):
+        with pytest.raises(ValueError, match="judged"):
+            SymptomConfig(**{**base.__dict__, "regimes": {"open": {**st, "judged": bad}}})

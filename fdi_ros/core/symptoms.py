@@ -59,6 +59,12 @@ def moving_average(R: np.ndarray, length: int) -> np.ndarray:
     return out
 
 
+def _unscaled(z: np.ndarray, thr: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Filtered residuals back in their units; NaN where not judged (infinite threshold)."""
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isfinite(thr), z * thr + centre, np.nan)
+
+
 @dataclass(frozen=True)
 class SymptomConfig:
     """Thresholds and debouncing of the symptoms of one residual vector (the threshold file).
@@ -101,7 +107,10 @@ class SymptomConfig:
         regime produced it, and the residuals are judged against that regime's statistics.
         The top-level ``centre``, ``threshold`` and ``scale`` are those of ``base_regime``
         (and of vectors that name no regime). A vector of a regime the file does not hold is
-        "not valid here".
+        "not valid here". A regime may also carry ``"judged"`` (a flag per residual): a
+        residual not judged there never gives a symptom in it (its threshold counts as
+        infinite; its calibrated one is kept for the record), for a regime whose maps of that
+        residual do not carry over (e.g. crank pulsations with the EGR valve open).
     """
 
     centre: tuple[float, ...]
@@ -130,13 +139,22 @@ class SymptomConfig:
             raise ValueError("a symptom configuration needs the names of its residuals")
         regimes = {}
         for rname, st in dict(self.regimes).items():
-            if not isinstance(st, Mapping) or set(st) != {"centre", "threshold", "scale"}:
-                raise ValueError(f"regime {rname!r}: needs exactly centre, threshold, scale")
-            vals = {k: tuple(float(x) for x in st[k]) for k in ("centre", "threshold", "scale")}
+            keys = {"centre", "threshold", "scale"}
+            if not isinstance(st, Mapping) or not keys <= set(st) <= keys | {"judged"}:
+                raise ValueError(f"regime {rname!r}: needs exactly centre, threshold, scale "
+                                 "(and judged, optional)")
+            vals: dict[str, tuple[Any, ...]] = {
+                k: tuple(float(x) for x in st[k]) for k in sorted(keys)}
             if any(len(v) != m or not np.all(np.isfinite(v)) for v in vals.values()):
                 raise ValueError(f"regime {rname!r}: needs {m} finite values each")
             if min(vals["threshold"]) <= 0 or min(vals["scale"]) <= 0:
                 raise ValueError(f"regime {rname!r}: thresholds and scales must be positive")
+            if "judged" in st:
+                judged = tuple(st["judged"])
+                if len(judged) != m or not all(isinstance(j, bool) for j in judged):
+                    raise ValueError(f"regime {rname!r}: judged needs {m} true/false flags")
+                if not all(judged):
+                    vals["judged"] = judged
             regimes[str(rname)] = vals
         object.__setattr__(self, "regimes", regimes)
         object.__setattr__(self, "base_regime", str(self.base_regime))
@@ -184,7 +202,10 @@ class SymptomConfig:
         st = self.regimes.get(regime)
         if st is None:
             raise KeyError(f"no thresholds for regime {regime!r}")
-        return np.asarray(st["centre"]), np.asarray(st["threshold"])
+        thr = np.asarray(st["threshold"])
+        if "judged" in st:  # not judged there: never a symptom
+            thr = np.where(np.asarray(st["judged"]), thr, np.inf)
+        return np.asarray(st["centre"]), thr
 
     def normalise(self, values: np.ndarray, regime: str = "") -> np.ndarray:
         """Residuals centred and divided by their regime's thresholds: fault-free they stay
@@ -390,8 +411,8 @@ class SymptomGenerator:
         grow = (self._level != 0) & (raw != 0) & (np.sign(raw) == np.sign(self._level))
         self._level = np.where(switch | grow, raw, self._level)
         return SymptomState(rv.index, rv.t, True, "", self.symptom_names,
-                            tuple(int(x) for x in self._level), tuple(f * thr + c), *thr_t,
-                            regime=rv.regime)
+                            tuple(int(x) for x in self._level), tuple(_unscaled(f, thr, c)),
+                            *thr_t, regime=rv.regime)
 
     def run(self, rvs: Sequence[ResidualVector]) -> list[SymptomState]:
         """:meth:`update` over a stream (from a reset), the moving average with array
@@ -418,7 +439,7 @@ class SymptomGenerator:
         filt = acc / np.maximum(count, 1)[:, None]
         raw = np.where(filt < -1.0, -1, np.where(filt > cfg.intense_factor, 2,
                                                  np.where(filt > 1.0, 1, 0))).tolist()
-        FC = filt * T + C
+        FC = _unscaled(filt, T, C)
         names = self.symptom_names
         nan_t = tuple(np.full(m, np.nan))
         on, off = int(cfg.debounce_on), int(cfg.debounce_off)

@@ -260,12 +260,14 @@ THRESHOLD_SOURCES = (DEFAULT_DRIVE, DEFAULT_CALIBRATION_DRIVE)
 def build_reference_models(out, *, seed: int = 0, progress: bool = True, log=lambda s: None,
                            resolve=Path):
     """The reference model set of the diesel graph's bank (the base regime, with the ECU's
-    part-load passes for its low-speed map and the T2 sensor's lag), thresholds from the two
-    fault-free drives: what ``fdi-ros build-bank`` and ``reproduce diesel --rebuild`` build.
-    ``resolve`` turns the repository-relative scenario paths into paths."""
+    part-load passes for its low-speed map and the T2 sensor's lag; the EGR-open regimes the
+    passes hold enough of), thresholds from the two fault-free drives: what ``fdi-ros
+    build-bank`` and ``reproduce diesel --rebuild`` build. ``resolve`` turns the
+    repository-relative scenario paths into paths."""
     return build_models([str(resolve(s)) for s in REFERENCE_SOURCES], out=out, seed=seed,
                         fault_free=[str(resolve(s)) for s in THRESHOLD_SOURCES],
-                        threshold_seed=THRESHOLD_SEED, progress=progress, log=log)
+                        threshold_seed=THRESHOLD_SEED, progress=progress, log=log,
+                        further_regimes=True)
 
 
 def identification_figures(res, data, outdir) -> list[Path]:

@@ -49,7 +49,12 @@ from fdi_ros.core.symptoms import (
 from fdi_ros.core.symptoms import calibrate_thresholds as _calibrate
 from fdi_ros.core.types import FeatureVector, ResidualVector
 from fdi_ros.plants.diesel.ecu import ACTUATOR_SETTLE_S, GATED_ACTUATORS, actuator_status
-from fdi_ros.plants.diesel.reference import TEMPERATURE_SETTLED, ReferenceModelSet, wrap_phase
+from fdi_ros.plants.diesel.reference import (
+    OUTPUTS,
+    TEMPERATURE_SETTLED,
+    ReferenceModelSet,
+    wrap_phase,
+)
 
 if TYPE_CHECKING:
     from fdi_ros.core.lolimot import Lolimot
@@ -957,7 +962,11 @@ def calibrate_with_residuals(models: ReferenceModelSet,
     rvs = [rv for feats in streams for rv in stream_residuals(models, feats, config=gate)]
     R = np.array([rv.values for rv in rvs])
     # Transients are diagnosed in the base regime only: elsewhere the maps rest on the
-    # identification passes alone (their transients stay "not valid here", no thresholds).
+    # identification passes alone, and the EGR flow model's static exhaust side misses the
+    # turbocharger's and the T2 sensor's lags (its transients on a drive it was not
+    # calibrated on went beyond every calibrated excursion): they stay "not valid here".
+    judged = {ms.regime: tuple(o in ms.info["judged_outputs"] for o in OUTPUTS)
+              for ms in models.regimes if "judged_outputs" in ms.info}
     valid = np.array([rv.valid and (not rv.regime.endswith(TRANSIENT_SUFFIX) or
                                     rv.regime == models.regime + TRANSIENT_SUFFIX)
                       for rv in rvs])
@@ -967,6 +976,12 @@ def calibrate_with_residuals(models: ReferenceModelSet,
                                max_fuel_change=max_fuel_change, rate_lag=rate_lag,
                                regimes=[rv.regime for rv in rvs], base_regime=models.regime,
                                transients=transients, **kw)
+    if judged:  # a regime judged on some residuals only
+        regimes = {name: dict(st) for name, st in cfg.regimes.items()}
+        for name, st in regimes.items():
+            if name in judged:
+                st["judged"] = judged[name]
+        cfg = replace(cfg, regimes=regimes)
     return cfg, rvs
 
 

@@ -79,6 +79,43 @@ def test_bad_config_clear_error(tmp_path: Path, text: str, msg: str):
         load_graph_config(p)
 
 
+class _Sym:
+    """A symptom stage reporting s_1 = "-" from t = 1 s on, in ``regime`` (whose residuals
+    are all judged unless ``partial``)."""
+
+    def __init__(self, regime: str = "", partial: bool = False) -> None:
+        from types import SimpleNamespace
+
+        self.regime = regime
+        self.config = SimpleNamespace(judges_all=lambda r: not (partial and r == regime))
+
+    def update(self, rv):
+        from types import SimpleNamespace
+        lv = (-1,) if rv.t >= 1.0 else (0,)
+        return SimpleNamespace(valid=True, levels=lv, in_order=lambda columns: lv,
+                               regime=self.regime)
+
+
+def test_no_candidates_where_the_regime_judges_some_residuals_only(tmp_path):
+    """A symptom in a regime that judges some residuals only (the diesel's EGR valve open):
+    the fault-symptom table's signatures span every residual and cannot be matched there, so
+    the diagnosis is "detected" with no candidate instead of a wrong one."""
+    cfg_file = tmp_path / "config" / "g.yaml"
+    cfg_file.parent.mkdir()
+    cfg_file.write_text(CONFIG)
+    for partial, want in ((False, ("a",)), (True, ())):
+        diag = Diagnoser(load_graph_config(cfg_file))
+        diag.table = FaultSymptomTable(("s_1",), {"a": (-1,), "b": (1,)})
+        diag.reference_id = "nominal"
+        diag.symptom_gen = _Sym("open", partial)
+        for k in range(15):
+            t = 0.1 * k
+            res = {m: ResidualVector(m, 0, t, True, "", ("r",), ("1",), np.array([3.0]), 3.0)
+                   for m in ("nominal", "a", "b")}
+            d = diag.update(k, t, res).diagnosis
+        assert d.state == "detected" and d.candidate_faults == want, (partial, d)
+
+
 def test_no_isolation_by_elimination(tmp_path):
     """The true fault's model is away: the least bad other hypothesis is never isolated; the
     diagnosis is 'detected, not isolable' naming the table's candidate and its absent model."""
@@ -96,13 +133,7 @@ def test_no_isolation_by_elimination(tmp_path):
     diag.table = FaultSymptomTable(("s_1",), {"a": (-1,), "b": (1,)})
     diag.reference_id = "nominal"
 
-    class Sym:  # a symptom stage reporting s_1 = "-" from t = 1 s on
-        def update(self, rv):
-            from types import SimpleNamespace
-            lv = (-1,) if rv.t >= 1.0 else (0,)
-            return SimpleNamespace(valid=True, levels=lv, in_order=lambda columns: lv)
-
-    diag.symptom_gen = Sym()
+    diag.symptom_gen = _Sym()
 
     def rv(mid, t, norm):
         return ResidualVector(mid, 0, t, True, "", ("r",), ("1",), np.array([norm]), norm)

@@ -146,6 +146,7 @@ def test_a_residual_not_judged_in_a_regime_never_gives_a_symptom_there(tmp_path)
     cfg = SymptomConfig(**{**base.__dict__, "regimes": {"open": st}})
     back = SymptomConfig.from_dict(json.loads(json.dumps(cfg.to_dict())))
     assert back == cfg and back.regimes["open"]["judged"] == judged
+    assert cfg.judges_all("") and cfg.judges_all("closed") and not cfg.judges_all("open")
     c, thr = cfg.statistics("open")
     assert np.all(np.isinf(thr) == ~np.array(judged)), seed
     n = 80

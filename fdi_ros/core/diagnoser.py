@@ -107,7 +107,10 @@ class Diagnoser:
                 # or restarting after an external lifecycle change).
                 feed = {}
             active = symptoms is not None and symptoms.valid and any(symptoms.levels)
-            if symptoms is not None and active and self.table is not None:
+            if symptoms is not None and active and self.table is not None and \
+                    self.symptom_gen.config.judges_all(symptoms.regime):
+                # (a regime that judges some residuals only has no signatures to match:
+                # detected there, no candidates)
                 cols = self.table.columns
                 observed = symptoms.in_order(cols) if cols else tuple(symptoms.levels)
                 # The faults the symptoms do not contradict: a fault outside this list

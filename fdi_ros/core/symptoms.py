@@ -195,6 +195,11 @@ class SymptomConfig:
         """Whether the file holds statistics for ``regime`` ("" and the base regime: yes)."""
         return regime in ("", self.base_regime) or regime in self.regimes
 
+    def judges_all(self, regime: str = "") -> bool:
+        """Whether every residual is judged in ``regime`` (a fault-symptom table's signatures
+        span them all: with some not judged there, they cannot be matched)."""
+        return all(self.regimes.get(regime, {}).get("judged", (True,)))
+
     def statistics(self, regime: str = "") -> tuple[np.ndarray, np.ndarray]:
         """(centre, threshold) of a regime ("" or the base regime: the top-level ones)."""
         if regime in ("", self.base_regime):

@@ -97,6 +97,13 @@ def coverage_figure(features: Sequence, states: Sequence, path: str | Path, *,
     fig, ax = plt.subplots(figsize=(8, 5))
     mesh = ax.pcolormesh(nb, fb, share.T, cmap="RdYlGn", vmin=0.0, vmax=1.0, shading="flat")
     fig.colorbar(mesh, ax=ax, label="share of segments with a valid diagnosis")
+    # how much of the drive each cell holds: a cell crossed in a transient is as coloured as
+    # one the engine cruises in
+    cn, cf = np.meshgrid(0.5 * (nb[:-1] + nb[1:]), 0.5 * (fb[:-1] + fb[1:]), indexing="ij")
+    has = cnt > 0
+    ax.scatter(cn[has], cf[has], s=120.0 * np.sqrt(cnt[has] / cnt.max()), facecolors="none",
+               edgecolors="k", linewidths=0.6, label="segments in the cell (area)")
+    ax.legend(loc="upper right", fontsize=8)
     ax.set_xlabel("engine speed n [rpm]")
     ax.set_ylabel("injected fuel [mg/stroke] (load)")
     ax.set_title(title or f"diagnosis coverage: {valid.mean():.1%} of {len(states)} segments")

@@ -13,7 +13,8 @@ from p3 (isentropic orifices, the inlet density p3 / (R T3)):
 
     m_cyl + m_fuel = m_t + m_egr,
     m_t   = A_t(vgt) sqrt(2 p3 / (R T3)) sqrt(p3 - p4),
-    m_egr = A_e egr^gamma sqrt(2 p3 / (R T3)) sqrt(p3 - p2),
+    m_egr = A_e egr^gamma sqrt(2 p3 / (R T3)) sqrt(p3 - p2)   (p3 > p2; below, the valve
+            passes intake gas back: -A_e egr^gamma sqrt(2 p2 / (R T2)) sqrt(p2 - p3)),
     T3    = T2 + c_T m_fuel / (m_cyl + m_fuel)        (the fuel's heat in the exhaust),
     p4    = p_amb + k_x (m_cyl + m_fuel)^2             (the after-treatment's back pressure),
     A_t   = A_open - vgt (A_open - A_closed).
@@ -90,11 +91,13 @@ class EgrFlowModel:
         a_t = a_o - vgt * (a_o - a_c)
         a_egr = a_e * np.clip(np.asarray(d["egr_cmd"], dtype=float), 0.0, 1.0) ** gam
         k3 = np.sqrt(2.0 / (R_AIR * T3))
+        back = a_egr * np.sqrt(2.0 * p2 / (R_AIR * T2))  # intake gas, the other way
 
         def out(p3: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             s = k3 * np.sqrt(p3)
             return (s * a_t * np.sqrt(np.maximum(p3 - p4, 0.0)),
-                    s * a_egr * np.sqrt(np.maximum(p3 - p2, 0.0)))
+                    s * a_egr * np.sqrt(np.maximum(p3 - p2, 0.0))
+                    - back * np.sqrt(np.maximum(p2 - p3, 0.0)))
 
         # the outflow grows with p3 from p4 on: bisection, vectorised over the segments
         lo = p4.copy()

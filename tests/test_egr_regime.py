@@ -128,7 +128,7 @@ def test_judged_on_eta_v_alone_and_the_paths_agree_after_a_load(models):
     cfg = calibrate_from_fault_free(loaded, [_fvs(_engine(24000, 1))[:12000],
                                              _fvs(_engine(8000, seed))])
     assert cfg.regimes["egr_open_flaps_open"]["judged"] == (True, False, False, False, False)
-    feats = _fvs(_engine(2500, seed + 1))
+    feats = _fvs(_engine(6000, seed + 1))
     a = stream_residuals(ms, feats, config=cfg)
     b = stream_residuals(loaded, feats, config=cfg)
     model = ReferenceResidualModel(models=loaded, config=cfg, window=1)
@@ -140,3 +140,22 @@ def test_judged_on_eta_v_alone_and_the_paths_agree_after_a_load(models):
             == (z.valid, z.status, z.regime)
         np.testing.assert_allclose(y.values, x.values, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(z.values, y.values, rtol=1e-9, atol=1e-12)
+
+
+def test_segments_for_the_further_regimes_only_leave_the_base_maps_alone(models):
+    """Segments marked for the further regimes only (a slow pass identifying the EGR flow
+    model): their EGR-closed part, however wrong for the base map, does not change it."""
+    from fdi_ros.plants.diesel.reference import REGIMES_ONLY
+
+    ms, _ = models
+    data = _engine(24000, 1)
+    extra = _engine(4000, random.randrange(2**32))
+    extra["eta_v"] = extra["eta_v"] + 0.3   # nothing the base map may learn
+    both = {k: np.r_[data[k], extra[k]] for k in data}
+    both[REGIMES_ONLY] = np.r_[np.zeros(24000), np.ones(4000)]
+    res = identify_regime_models(both, config=IdentificationConfig(
+        max_models=6, storage_correction=False))
+    X = np.column_stack([data["n"], data["rho2"]])[::7]
+    np.testing.assert_array_equal(res.models.models["eta_v"].predict(X),
+                                  ms.models["eta_v"].predict(X))
+    assert res.models.t2_tau == ms.t2_tau

@@ -93,9 +93,17 @@ def test_the_regime_map_saved_and_loaded_predicts_the_same(tmp_path):
     assert isinstance(back, ef.EgrFlowEta) and back.flow == flow
     probe = X[rng.choice(X.shape[0], 200)] * rng.uniform(0.8, 1.2, (200, len(inputs)))
     assert np.array_equal(back.predict(probe), m.predict(probe))
-    # its region: the regime's box of every input, checked apart (the structure carries over
-    # beyond its data's (n, rho2) coverage)
-    assert back.in_region(probe).all()
+    # its region: the regime's box of every input (checked apart; the structure carries over
+    # beyond its data's (n, rho2) coverage), but not with the valve nearly balanced
+    inside = back.in_region(probe)
+    assert np.array_equal(inside, m.in_region(probe))
+    pd = {k: probe[:, inputs.index(k)] for k in ef.INPUTS}
+    f = flow.flows(pd, base.predict(probe[:, :2]))
+    dp = f["p3"] - pd["rho2"] * ef.R_AIR * pd["T2"]
+    assert np.array_equal(inside, np.abs(dp) >= ef.BALANCED_PA), seed
+    why = back.outside(probe)
+    assert all((w == "") == ok for w, ok in zip(why, inside)), seed
+    assert all("nearly balanced" in w for w, ok in zip(why, inside) if not ok), seed
     assert np.allclose(m.predict(X), flow.eta_fresh(d, base.predict(X[:, :2])), atol=1e-12)
     (tmp_path / "plain").mkdir()
     region.save(tmp_path / "plain" / "eta_v.npz")

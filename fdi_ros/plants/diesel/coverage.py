@@ -44,6 +44,7 @@ def reason_class(status: str) -> str:
                        ("egr_cmd", "EGR command outside the identified region"),
                        ("swirl_cmd", "swirl command outside the identified region"),
                        ("operating point", "(n, rho2) outside the identified coverage"),
+                       ("nearly balanced", "EGR valve nearly balanced"),
                        ("n = ", "speed outside the identified range"),
                        ("rho2 = ", "boost density outside the identified range"),
                        ("feature", "features not valid")):

@@ -47,6 +47,8 @@ START = (2.0e-4, 1.0, 3.0e-4, 1.0e-4, 8000.0, 1.0e6)
 LOWER = (1e-6, 0.3, 1e-6, 1e-7, 500.0, 1e3)
 UPPER = (5e-3, 3.0, 5e-3, 5e-3, 5e4, 1e8)
 INPUTS = ("n", "rho2", "T2", "fuel", "egr_cmd", "vgt")
+# Pressure difference across the EGR valve [Pa] below which the flow model is not valid
+BALANCED_PA = 1000.0
 
 
 @dataclass(frozen=True)
@@ -247,10 +249,24 @@ class EgrFlowEta:
         return self.flow.eta_fresh(d, self.base.predict(np.column_stack([d["n"], d["rho2"]])))
 
     def in_region(self, X: np.ndarray) -> np.ndarray:
-        """Everywhere within the regime's box of every input (its validity, checked apart):
-        the structure carries over between the identification's passes and beyond the base
-        map's (n, rho2) coverage (measured on a drive it never saw, README)."""
-        return np.ones(np.atleast_2d(X).shape[0], dtype=bool)
+        """Within the regime's box of every input (its validity, checked apart; the structure
+        carries over between the identification's passes and beyond the base map's (n, rho2)
+        coverage, measured on a drive it never saw, README), but not with the valve nearly
+        balanced: within :data:`BALANCED_PA` of p2 the exhaust pulses push the flow both ways
+        in every cycle, and a mean-value orifice does not say how much passes."""
+        return np.abs(self._valve_dp(X)) >= BALANCED_PA
+
+    def _valve_dp(self, X: np.ndarray) -> np.ndarray:
+        d = self._data(X)
+        f = self.flow.flows(d, self.base.predict(np.column_stack([d["n"], d["rho2"]])))
+        return np.asarray(f["p3"] - d["rho2"] * R_AIR * d["T2"])
+
+    def outside(self, X: np.ndarray) -> list[str]:
+        """Why each row is outside :meth:`in_region` ("" inside)."""
+        return ["" if abs(dp) >= BALANCED_PA else
+                f"not valid here: EGR valve nearly balanced (p3 - p2 = {dp:.0f} Pa, within "
+                f"{BALANCED_PA:.0f} Pa: the exhaust pulses push the flow both ways)"
+                for dp in self._valve_dp(X)]
 
     def save(self, path: str | Path) -> None:
         path = Path(path)

@@ -18,6 +18,9 @@ DEFAULT_IDENT = "config/scenarios/diesel_ident.yaml"
 # segments fill the base regime's map at low speed and their valve moves show the T2 sensor's
 # lag; the other regimes' maps from them are not good enough for thresholds yet (README)
 DEFAULT_IDENT_ECU = "config/scenarios/diesel_ident_ecu.yaml"
+# a slow part-load pass with the flaps closed and the EGR valve open: quasi-stationary data
+# for that regime's EGR flow model only (its EGR-closed segments stay out of the base maps)
+DEFAULT_IDENT_FLAPS = "config/scenarios/diesel_ident_flaps.yaml"
 DEFAULT_DRIVE = "config/scenarios/diesel_drive.yaml"
 # a drive as the ECU runs it (another route than the realistic drive the coverage is judged on)
 DEFAULT_CALIBRATION_DRIVE = "config/scenarios/diesel_calibration_drive.yaml"
@@ -186,17 +189,19 @@ def identification_table(streams) -> dict:
 def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
                  threshold_seed: int = THRESHOLD_SEED, mapping=None, config=None,
                  progress: bool = True, figures=None, log=lambda s: None,
-                 further_regimes: bool = False):
+                 further_regimes: bool = False, regime_sources=()):
     """Identify, save, calibrate the fault-free thresholds; returns (result, symptom config or
     None, report dict). ``data_source`` and ``fault_free``: one source (scenario, bag, CSV) or
     a list of them; each source is a stream of its own (e.g. the EGR-closed identification
     cycle and the part-load passes with the ECU's maps); with ``further_regimes`` every
     operating regime with enough data gets models of its own (:func:`identify_regime_models`),
-    else the base regime's only."""
+    else the base regime's only; ``regime_sources``: more streams for the further regimes
+    only (seeds after the data sources')."""
     import numpy as np
 
     from fdi_ros.plants.diesel.reference import (
         REGIMES,
+        REGIMES_ONLY,
         IdentificationConfig,
         identify_regime_models,
         regime_labels,
@@ -208,9 +213,17 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
     sources = data_source if isinstance(data_source, (list, tuple)) else [data_source]
     data = identification_table([load_features(src, seed=seed + i, mapping=mapping)
                                  for i, src in enumerate(sources)])
+    if further_regimes and regime_sources:
+        more = identification_table([load_features(src, seed=seed + len(sources) + j,
+                                                   mapping=mapping)
+                                     for j, src in enumerate(regime_sources)])
+        data = {k: np.concatenate([data[k], more[k]]) for k in data if k in more}
+        data[REGIMES_ONLY] = np.r_[np.zeros(data["n"].size - more["n"].size),
+                                   np.ones(more["n"].size)]
     res = identify_regime_models(data, config=cfg, progress=progress, log=log,
                                  further_regimes=further_regimes)
     out = Path(out)
+    res.models.info["further_regimes"] = bool(further_regimes)
     res.models.save(out)
     info = res.models.info
     report = {"out": str(out), "n_segments": int(data["n"].size), "n_train": res.n_train,
@@ -227,7 +240,8 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
                              "nrmse_test_lut": round(res.nrmse_test_lut[k], 4),
                              "lut_vs_model_rmse": res.lut_error[k]["rmse"]}
                          for k in res.nrmse_test}}
-    base = {k: v[regime_labels(data) == REGIMES[0][0]] for k, v in data.items()}
+    in_base = (regime_labels(data) == REGIMES[0][0]) & (data.get(REGIMES_ONLY, 0.0) == 0)
+    base = {k: v[in_base] for k, v in data.items()}
     X = np.column_stack([base[k] for k in res.models.inputs])
     report["inputs"] = list(res.models.inputs)
     if res.models.validity is not None:
@@ -254,6 +268,7 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
 # The sources of the graph's reference model set: what it is identified on and the fault-free
 # drives its thresholds come from (seeds: the first source's seed, then one more per source).
 REFERENCE_SOURCES = (DEFAULT_IDENT, DEFAULT_IDENT_ECU)
+REGIME_SOURCES = (DEFAULT_IDENT_FLAPS,)
 THRESHOLD_SOURCES = (DEFAULT_DRIVE, DEFAULT_CALIBRATION_DRIVE)
 
 
@@ -267,7 +282,8 @@ def build_reference_models(out, *, seed: int = 0, progress: bool = True, log=lam
     return build_models([str(resolve(s)) for s in REFERENCE_SOURCES], out=out, seed=seed,
                         fault_free=[str(resolve(s)) for s in THRESHOLD_SOURCES],
                         threshold_seed=THRESHOLD_SEED, progress=progress, log=log,
-                        further_regimes=True)
+                        further_regimes=True,
+                        regime_sources=[str(resolve(s)) for s in REGIME_SOURCES])
 
 
 def identification_figures(res, data, outdir) -> list[Path]:

@@ -624,6 +624,8 @@ OPEN_EGR_INPUTS = ("fuel", "vgt", "T2")
 TEMPERATURE_SETTLED = 3.0
 # The column marking the segments quasi-stationary for the exhaust side (egrflow.settled).
 SETTLED = "egr_settled"
+# The column marking segments for the further regimes only (1: not in the base regime's maps)
+REGIMES_ONLY = "regimes_only"
 # Fewest quasi-stationary segments an EGR-open regime needs for its flow model.
 MIN_FLOW_SEGMENTS = 500
 # Fewest segments a regime needs in the identification data to get models of its own, and
@@ -713,6 +715,8 @@ def identify_regime_models(data: Mapping[str, np.ndarray], *,
         data[SETTLED] = egrflow.settled(data).astype(float)
     labels = regime_labels(data)
     sel = {name: labels == name for name, _, _ in REGIMES}
+    if REGIMES_ONLY in data:
+        sel[REGIMES[0][0]] &= np.asarray(data[REGIMES_ONLY]) == 0
     base_name = REGIMES[0][0]
     if sel[base_name].sum() < 10 * cfg.min_samples_per_model:
         raise ValueError(f"only {int(sel[base_name].sum())} segments with the EGR valve "

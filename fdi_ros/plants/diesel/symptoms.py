@@ -200,6 +200,10 @@ def region_status(models: ReferenceModelSet, data: Mapping[str, object],
                 for ms, c in zip(sets, checks)) + ")"
         else:
             w = ""
+        ms = sets[where[i]] if where[i] >= 0 else sets[0]
+        own = getattr(ms.models.get("eta_v"), "outside", None)  # a physical map's own reason
+        if not w and own is not None:
+            w = own(np.array([[data[k][i] for k in ms.inputs]]))[0]
         if not w:
             within = f" of regime {sets[where[i]].regime}" if len(sets) > 1 else ""
             w = (f"not valid here: operating point n = {n[i]:.0f} rpm, rho2 = "

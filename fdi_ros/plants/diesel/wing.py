@@ -177,8 +177,10 @@ def _reference_current(d: Path) -> bool:
     except ValueError:
         return False
     validity = manifest.get("validity")
-    # identified in operating regimes (sets from before the regimes are rebuilt)
-    if not validity or not manifest.get("info", {}).get("regime"):
+    # identified in operating regimes, the EGR-open ones included (sets from before are
+    # rebuilt)
+    info = manifest.get("info", {})
+    if not validity or not info.get("regime") or not info.get("further_regimes"):
         return False
     tol = {r.get("name"): r.get("tol") for r in validity.get("ranges", [])}
     return all(tol.get(k, v) == v for k, v in ACTUATOR_TOL.items())
@@ -214,6 +216,7 @@ def build_bank(cfg: GraphConfig, *, progress: bool = True, seed: int = 0,
     from fdi_ros.core.parallel import process_pool
     from fdi_ros.plants.diesel.identify import (
         REFERENCE_SOURCES,
+        REGIME_SOURCES,
         THRESHOLD_SEED,
         THRESHOLD_SOURCES,
         build_reference_models,
@@ -221,7 +224,7 @@ def build_bank(cfg: GraphConfig, *, progress: bool = True, seed: int = 0,
 
     t0 = time.perf_counter()
     built = []
-    ident = [str(cfg.resolve(s)) for s in REFERENCE_SOURCES]
+    ident = [str(cfg.resolve(s)) for s in (*REFERENCE_SOURCES, *REGIME_SOURCES)]
     drives = [str(cfg.resolve(s)) for s in THRESHOLD_SOURCES]
     refs = [s for s in todo if s[1]["type"] == "diesel_reference"]
     jobs = []

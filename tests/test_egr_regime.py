@@ -159,3 +159,22 @@ def test_segments_for_the_further_regimes_only_leave_the_base_maps_alone(models)
     np.testing.assert_array_equal(res.models.models["eta_v"].predict(X),
                                   ms.models["eta_v"].predict(X))
     assert res.models.t2_tau == ms.t2_tau
+
+
+def test_transients_of_the_flow_regime_need_enough_calibration(models, monkeypatch):
+    """With transients as regimes of their own, an EGR-open regime's transients get
+    thresholds (judged on eta_V alone) only with MIN_TRANSIENT_ROWS of them in the
+    calibration; with fewer they stay "not valid here"."""
+    from fdi_ros.plants.diesel import symptoms as sy
+
+    _, loaded = models
+    seed = random.randrange(2**32)
+    streams = [_fvs(_engine(24000, 1))[:12000], _fvs(_engine(8000, seed))]
+    few = calibrate_from_fault_free(loaded, streams, transients="regime")
+    assert not few.knows("egr_open_flaps_open/transient"), seed
+    monkeypatch.setattr(sy, "MIN_TRANSIENT_ROWS", 20)
+    enough = calibrate_from_fault_free(loaded, streams, transients="regime")
+    assert enough.knows("egr_open_flaps_open/transient"), seed
+    assert enough.regimes["egr_open_flaps_open/transient"]["judged"] == (
+        True, False, False, False, False)
+

@@ -181,7 +181,11 @@ def region_status(models: ReferenceModelSet, data: Mapping[str, object],
         return ["not valid here: T2_rate missing from the features"] * size
     sets = models.regime_sets()
     where = models.assign(data, size) if len(sets) > 1 else np.zeros(size, dtype=int)
-    checks = [ms.check(data, size)[1] for ms in sets]
+    # the reasons of the segments outside only (most of a drive is inside)
+    bad = np.flatnonzero(~np.asarray(joint_ok, dtype=bool))
+    sub = {k: np.asarray(v)[bad] if np.ndim(v) else v for k, v in data.items()}
+    reasons = [ms.check(sub, bad.size)[1] for ms in sets]
+    checks = [dict(zip(bad.tolist(), r)) for r in reasons]
     n, rho2 = data["n"], data["rho2"]
     out = []
     for i in range(size):

@@ -70,7 +70,9 @@ class PreprocessorNode(Node):
                                                    LATCHED_QOS)
 
     def _on_ready(self, m: Any) -> None:
-        self._needed = parse_readers(m.frame_id) or self._needed
+        needed = parse_readers(m.frame_id)  # None: the ready signal itself
+        if needed is not None:
+            self._needed = needed
 
     def _on_block(self, m: Any) -> None:
         self._push(m)

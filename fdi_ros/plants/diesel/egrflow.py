@@ -24,7 +24,7 @@ EGR-open segments of a fault-free drive (settled: the VGT command stands for its
 the temperature sensor's lag is undone); ``eta_tot`` is the EGR-closed reference map. A map of
 six inputs learnt from data (LOLIMOT over n, rho2, egr, fuel, vgt, T2) learns the exhaust side
 along the identification's trajectories only, and a drive lies between them; this structure
-carries over (see :func:`evaluate` and the README's coverage section for the figures).
+carries over (the README's coverage section has the figures).
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from fdi_ros.core.constants import R_AIR
 
@@ -116,12 +117,13 @@ class EgrFlowModel:
         p3 = 0.5 * (lo + hi)
         m_t, m_egr = out(p3)
         return {"m_th": m_th, "m_cyl": m_cyl, "m_fuel": m_f, "m_egr": m_egr, "m_t": m_t,
+                "p2": p2,
                 "p3": p3, "T3": T3, "p4": p4}
 
     def eta_fresh(self, d: Mapping[str, np.ndarray], eta_tot: np.ndarray) -> np.ndarray:
         """The fresh-air volumetric efficiency the MAF sees (eta_V of the features)."""
         f = self.flows(d, eta_tot)
-        return (f["m_cyl"] - f["m_egr"]) / f["m_th"]
+        return np.asarray((f["m_cyl"] - f["m_egr"]) / f["m_th"])
 
     def to_dict(self) -> dict:
         return {"type": "diesel_egr_flow", "params": dict(zip(PARAMS, map(float, self.theta))),
@@ -196,31 +198,16 @@ def settled(d: Mapping[str, np.ndarray], *, t2_rate: float = 3.0, window: int = 
     ``rel_step`` of their span over the last ``window`` segments (the VGT's and the
     turbocharger's lags, about a second)."""
     n = np.asarray(d["n"]).size
+    if n <= window:
+        return np.zeros(n, dtype=bool)
     ok = np.abs(np.nan_to_num(np.asarray(d.get("T2_rate", np.zeros(n)), dtype=float),
                               nan=np.inf)) <= t2_rate
-    from numpy.lib.stride_tricks import sliding_window_view
-
     for k, scale in (("n", 5500.0), ("fuel", 60.0), ("vgt", 1.0), ("egr_cmd", 1.0)):
-        v = np.asarray(d[k], dtype=float)
-        if n <= window:
-            return np.zeros(n, dtype=bool)
-        w = sliding_window_view(v, window)
+        w = sliding_window_view(np.asarray(d[k], dtype=float), window)
         span = np.full(n, np.inf)
         span[window - 1:] = w.max(axis=1) - w.min(axis=1)
         ok &= span <= rel_step * scale
     return ok
-
-
-def evaluate(model: EgrFlowModel, d: Mapping[str, np.ndarray], eta_tot: np.ndarray,
-             eta_v: np.ndarray) -> dict[str, float]:
-    """Error of the model's fresh-air eta_V against the measured one: RMSE, 99th percentile
-    of the absolute error, mean, segments."""
-    e = model.eta_fresh(d, eta_tot) - np.asarray(eta_v, dtype=float)
-    e = e[np.isfinite(e)]
-    if e.size == 0:
-        return {"rmse": float("nan"), "p99": float("nan"), "mean": float("nan"), "n": 0}
-    return {"rmse": float(np.sqrt(np.mean(e ** 2))), "p99": float(np.percentile(np.abs(e), 99)),
-            "mean": float(np.mean(e)), "n": int(e.size)}
 
 
 SUFFIX = ".egrflow.json"  # beside the regime's eta_v.npz: the flow model of that map
@@ -229,9 +216,10 @@ SUFFIX = ".egrflow.json"  # beside the regime's eta_v.npz: the flow model of tha
 class EgrFlowEta:
     """The eta_V map of an EGR-open regime as the reference model set evaluates its maps
     (``predict(X)``, ``in_region(X)``, ``save(path)``; ``X``'s columns named by ``inputs``):
-    :class:`EgrFlowModel` over the EGR-closed regime's map ``base`` (of n, rho2). Its
-    identified region is that of the regime's own data map ``region`` (a LOLIMOT of the same
-    inputs, fitted on the same segments)."""
+    :class:`EgrFlowModel` over the EGR-closed regime's map ``base`` (of n, rho2), saved with
+    the regime's own data map ``region`` (a LOLIMOT of the same inputs). The flows of the last
+    rows asked are kept: the model set asks for the region and then the values of the same
+    rows, and solving p3 is most of the cost."""
 
     def __init__(self, flow: EgrFlowModel, base: Any, region: Any,
                  inputs: tuple[str, ...]) -> None:
@@ -239,14 +227,25 @@ class EgrFlowEta:
         if missing:
             raise ValueError(f"the EGR flow model needs the inputs {missing}")
         self.flow, self.base, self.region, self.inputs = flow, base, region, tuple(inputs)
+        self._last: tuple[tuple[tuple[int, ...], bytes], dict[str, np.ndarray]] | None = None
 
     def _data(self, X: np.ndarray) -> dict[str, np.ndarray]:
         X = np.atleast_2d(np.asarray(X, dtype=float))
         return {k: X[:, self.inputs.index(k)] for k in INPUTS}
 
-    def predict(self, X: np.ndarray) -> np.ndarray:
+    def _flows(self, X: np.ndarray) -> dict[str, np.ndarray]:
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        key, last = (X.shape, X.tobytes()), self._last
+        if last is not None and last[0] == key:
+            return last[1]
         d = self._data(X)
-        return self.flow.eta_fresh(d, self.base.predict(np.column_stack([d["n"], d["rho2"]])))
+        f = self.flow.flows(d, self.base.predict(np.column_stack([d["n"], d["rho2"]])))
+        self._last = (key, f)
+        return f
+
+    def predict(self, X: np.ndarray) -> np.ndarray:
+        f = self._flows(X)
+        return np.asarray((f["m_cyl"] - f["m_egr"]) / f["m_th"])
 
     def in_region(self, X: np.ndarray) -> np.ndarray:
         """Within the regime's box of every input (its validity, checked apart; the structure
@@ -257,9 +256,8 @@ class EgrFlowEta:
         return np.abs(self._valve_dp(X)) >= BALANCED_PA
 
     def _valve_dp(self, X: np.ndarray) -> np.ndarray:
-        d = self._data(X)
-        f = self.flow.flows(d, self.base.predict(np.column_stack([d["n"], d["rho2"]])))
-        return np.asarray(f["p3"] - d["rho2"] * R_AIR * d["T2"])
+        f = self._flows(X)
+        return np.asarray(f["p3"] - f["p2"])
 
     def outside(self, X: np.ndarray) -> list[str]:
         """Why each row is outside :meth:`in_region` ("" inside)."""

@@ -791,8 +791,9 @@ def _egr_flow_map(d: Mapping[str, np.ndarray], base: ReferenceModelSet,
     base_eta = base.models["eta_v"]
     eta_tot = base_eta.predict(np.column_stack([d["n"], d["rho2"]]))
     sub = {k: d[k][fit_rows] for k in egrflow.INPUTS}
+    engine = DieselParams()
     f = egrflow.fit(sub, eta_tot[fit_rows], d["eta_v"][fit_rows],
-                    displacement_l=DieselParams().V_D * 1e3, n_cyl=DieselParams().n_cyl,
+                    displacement_l=engine.V_D * 1e3, n_cyl=engine.n_cyl,
                     port=flaps_closed, seed=cfg.seed)
     m = egrflow.EgrFlowEta(f.model, base_eta, regime.models["eta_v"], regime.inputs)
     X = np.column_stack([d[k] for k in regime.inputs])

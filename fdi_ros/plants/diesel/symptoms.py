@@ -183,9 +183,17 @@ def region_status(models: ReferenceModelSet, data: Mapping[str, object],
     where = models.assign(data, size) if len(sets) > 1 else np.zeros(size, dtype=int)
     # the reasons of the segments outside only (most of a drive is inside)
     bad = np.flatnonzero(~np.asarray(joint_ok, dtype=bool))
-    sub = {k: np.asarray(v)[bad] if np.ndim(v) else v for k, v in data.items()}
+    sub = {k: v[bad] for k, v in data.items()}
     reasons = [ms.check(sub, bad.size)[1] for ms in sets]
     checks = [dict(zip(bad.tolist(), r)) for r in reasons]
+    # a physical map's own reason (the EGR flow model: the valve nearly balanced), per regime
+    own: dict[int, str] = {}
+    for j, ms in enumerate(sets):
+        why = getattr(ms.models.get("eta_v"), "outside", None)
+        rows = bad[where[bad] == j]
+        if why is not None and rows.size:
+            own.update(zip(rows.tolist(), why(np.column_stack([data[k][rows]
+                                                               for k in ms.inputs]))))
     n, rho2 = data["n"], data["rho2"]
     out = []
     for i in range(size):
@@ -204,10 +212,7 @@ def region_status(models: ReferenceModelSet, data: Mapping[str, object],
                 for ms, c in zip(sets, checks)) + ")"
         else:
             w = ""
-        ms = sets[where[i]] if where[i] >= 0 else sets[0]
-        own = getattr(ms.models.get("eta_v"), "outside", None)  # a physical map's own reason
-        if not w and own is not None:
-            w = own(np.array([[data[k][i] for k in ms.inputs]]))[0]
+        w = w or own.get(i, "")
         if not w:
             within = f" of regime {sets[where[i]].regime}" if len(sets) > 1 else ""
             w = (f"not valid here: operating point n = {n[i]:.0f} rpm, rho2 = "

@@ -125,7 +125,7 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
         deadline = time.monotonic() + timeout_s
         last_state = ""
         online: tuple[str, ...] = ()
-        seen_switch = 0
+        seen_switch = scanned = 0
         episode = math.nan
         while time.monotonic() < deadline:
             w.executor.spin_once(timeout_sec=0.05)
@@ -135,7 +135,7 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
                 ev = w.seen.truth[0][1]
                 run.fault_onset, run.fault = ev.t, ev.fault
                 log(f"t = {ev.t:7.3f} s  fault injected: {ev.fault} {ev.size:g} {ev.size_unit}")
-            _scan_symptoms(w, run, log)
+            scanned = _scan_symptoms(w, run, log, scanned)
             for _, d in w.seen.diagnoses[seen_switch:]:
                 seen_switch += 1
                 run.segments += 1
@@ -198,17 +198,25 @@ def run_live(config: str | Path, *, scenario: str | Path | None = None,
     return run, w
 
 
-def _scan_symptoms(w: GraphWatcher, run: LiveRun, log: Callable[[str], None]) -> None:
+def _scan_symptoms(w: GraphWatcher, run: LiveRun, log: Callable[[str], None],
+                   start: int = 0) -> int:
+    """The first symptom after the fault onset among the symptom messages from ``start`` on;
+    returns where the next scan starts (a message that failed the test fails it for good:
+    the onset, once known, stays; a long fault-free run was rescanned from its first message
+    on every turn of the loop, 0.2-0.35 of a core at 100 segments/s)."""
     if not math.isnan(run.first_symptom_t):
-        return
-    for _, m in w.seen.symptoms:
+        return start
+    seen = w.seen.symptoms
+    for i in range(start, len(seen)):
+        m = seen[i][1]
         if m.valid and any(int(v) for v in m.levels) and m.t_s >= (
                 run.fault_onset if not math.isnan(run.fault_onset) else -math.inf):
             run.first_symptom_t = float(m.t_s)
             code = {-1: "-", 0: "o", 1: "+", 2: "++"}
             run.first_symptom = {n: code[int(v)] for n, v in zip(m.names, m.levels)}
             log(f"t = {m.t_s:7.3f} s  first symptom: {run.first_symptom}")
-            return
+            return i + 1
+    return len(seen)
 
 
 def first_symptom_arrival(w: GraphWatcher, onset: float) -> Any:

@@ -65,6 +65,12 @@ def _unscaled(z: np.ndarray, thr: np.ndarray, centre: np.ndarray) -> np.ndarray:
         return np.where(np.isfinite(thr), z * thr + centre, np.nan)
 
 
+# (centre, threshold) arrays of a SymptomConfig's regimes, made once per configuration (read
+# per segment and bank model): id -> (the configuration, {regime: arrays}); a few
+# configurations live at a time, so the bound only keeps the dict from growing in a long run
+_STATISTICS: dict[int, tuple[Any, dict[str, tuple[np.ndarray, np.ndarray]]]] = {}
+
+
 @dataclass(frozen=True)
 class SymptomConfig:
     """Thresholds and debouncing of the symptoms of one residual vector (the threshold file).
@@ -201,16 +207,29 @@ class SymptomConfig:
         return all(self.regimes.get(regime, {}).get("judged", (True,)))
 
     def statistics(self, regime: str = "") -> tuple[np.ndarray, np.ndarray]:
-        """(centre, threshold) of a regime ("" or the base regime: the top-level ones)."""
+        """(centre, threshold) of a regime ("" or the base regime: the top-level ones), as
+        read-only arrays."""
+        mine = _STATISTICS.get(id(self))
+        if mine is None or mine[0] is not self:
+            if len(_STATISTICS) >= 64:
+                _STATISTICS.clear()
+            mine = _STATISTICS[id(self)] = (self, {})
+        hit = mine[1].get(regime)
+        if hit is not None:
+            return hit
         if regime in ("", self.base_regime):
-            return np.asarray(self.centre), np.asarray(self.threshold)
-        st = self.regimes.get(regime)
-        if st is None:
-            raise KeyError(f"no thresholds for regime {regime!r}")
-        thr = np.asarray(st["threshold"])
-        if "judged" in st:  # not judged there: never a symptom
-            thr = np.where(np.asarray(st["judged"]), thr, np.inf)
-        return np.asarray(st["centre"]), thr
+            c, thr = np.array(self.centre), np.array(self.threshold)
+        else:
+            st = self.regimes.get(regime)
+            if st is None:
+                raise KeyError(f"no thresholds for regime {regime!r}")
+            c, thr = np.array(st["centre"]), np.array(st["threshold"])
+            if "judged" in st:  # not judged there: never a symptom
+                thr = np.where(np.asarray(st["judged"]), thr, np.inf)
+        for a in (c, thr):
+            a.flags.writeable = False
+        mine[1][regime] = (c, thr)
+        return c, thr
 
     def normalise(self, values: np.ndarray, regime: str = "") -> np.ndarray:
         """Residuals centred and divided by their regime's thresholds: fault-free they stay

@@ -54,6 +54,11 @@ class SampleBlock:
         return row
 
 
+# position of each name in a FeatureVector's names (by the names tuple): get() is asked per
+# segment, bank model and feature
+_POSITIONS: dict[tuple[str, ...], dict[str, int]] = {}
+
+
 @dataclass(frozen=True)
 class FeatureVector:
     """One feature vector: a 180 deg CA segment, or one sample (mirrors ``fdi_msgs/Features``)."""
@@ -71,9 +76,14 @@ class FeatureVector:
 
     def get(self, name: str) -> float:
         """One feature value by name."""
+        at = _POSITIONS.get(self.names)
+        if at is None:
+            if len(_POSITIONS) >= 64:  # a stream has one or two name sets: a bound, not a cache
+                _POSITIONS.clear()
+            at = _POSITIONS[self.names] = {k: i for i, k in enumerate(self.names)}
         try:
-            return float(self.values[self.names.index(name)])
-        except ValueError:
+            return float(self.values[at[name]])
+        except KeyError:
             raise KeyError(f"feature {name!r} not in {self.names}") from None
 
     def as_dict(self) -> dict[str, float]:

@@ -464,7 +464,8 @@ def _finish(fv: FeatureVector, r: np.ndarray, valid: bool, status: str, regime: 
         if not cfg.knows(regime):
             valid, status = False, f"not valid here: no thresholds for regime {regime!r}"
         else:
-            norm = float(np.sqrt(np.mean(_z(r, cfg, regime) ** 2)))
+            sq = _z(r, cfg, regime) ** 2
+            norm = math.sqrt(sq.sum() / sq.size)
     return ResidualVector(model_id=model_id, index=fv.index, t=fv.t_end, valid=valid,
                           status=status, names=RESIDUALS, units=RESIDUAL_UNITS,
                           values=np.asarray(r, dtype=float), norm=norm, regime=regime)
@@ -495,9 +496,11 @@ def block_rms(E: np.ndarray, block: int = 10) -> float:
     E = np.atleast_2d(E)
     k = E.shape[0]
     r = k % block  # rows of the oldest, partial block
-    full = E[r:].reshape(-1, block, E.shape[1]).mean(axis=1)
-    means = np.vstack([E[:r].mean(axis=0, keepdims=True), full]) if r else full
-    return float(np.sqrt(np.mean(means ** 2)))
+    # sums divided by counts: np.mean's own arithmetic, without its per-call overhead
+    full = E[r:].reshape(-1, block, E.shape[1]).sum(axis=1) / block
+    means = np.vstack([E[:r].sum(axis=0, keepdims=True) / r, full]) if r else full
+    sq = means ** 2
+    return math.sqrt(sq.sum() / sq.size)
 
 
 class _Window:
@@ -709,7 +712,7 @@ class FaultHypothesisResidualModel(_Batchable):
         # A hypothesis whose fitted effect stays below one threshold in every residual explains
         # nothing a fault-free model could not: it keeps the unexplained norm (and so never
         # beats the nominal model on fault-free data).
-        explains = float(np.max(np.abs(s * G.mean(axis=0)))) >= self.min_effect
+        explains = float(np.max(np.abs(s * (G.sum(axis=0) / G.shape[0])))) >= self.min_effect
         norm = block_rms(Z - s * G if explains else Z) + self.penalty
         values = rv.values - s * g * self.config.statistics(rv.regime)[1]
         return ResidualVector(**{**rv.__dict__, "values": values, "norm": norm})

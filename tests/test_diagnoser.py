@@ -116,6 +116,48 @@ def test_no_candidates_where_the_regime_judges_some_residuals_only(tmp_path):
         assert d.state == "detected" and d.candidate_faults == want, (partial, d)
 
 
+def test_judged_fault_free_is_no_fault_without_valid_hypotheses(tmp_path):
+    """The reference model's symptoms valid and quiet, every hypothesis "not valid here" (the
+    diesel's EGR valve open: the hypotheses' maps do not hold there): the diagnosis is
+    "no_fault", not "not_valid"; a symptom there is "detected"; without valid reference
+    symptoms it stays "not_valid"."""
+    import random
+
+    cfg_file = tmp_path / "config" / "g.yaml"
+    cfg_file.parent.mkdir()
+    cfg_file.write_text(CONFIG)
+    onset = random.choice((0.6, 1.0, 1.2))
+
+    class Stage(_Sym):
+        def __init__(self, valid: bool) -> None:
+            super().__init__()
+            self.valid = valid
+
+        def update(self, rv):
+            from types import SimpleNamespace
+            lv = (-1,) if rv.t >= onset else (0,)
+            return SimpleNamespace(valid=self.valid, levels=lv, in_order=lambda c: lv,
+                                   regime="")
+
+    for valid_symptoms in (True, False):
+        diag = Diagnoser(load_graph_config(cfg_file))
+        diag.reference_id = "nominal"
+        diag.symptom_gen = Stage(valid_symptoms)
+        states = []
+        for k in range(15):
+            t = 0.1 * k
+            res = {"nominal": ResidualVector("nominal", k, t, True, "", ("r",), ("1",),
+                                             np.array([0.0]), 0.0)}
+            res |= {m: ResidualVector(m, k, t, False, "not valid here: regime", ("r",), ("1",),
+                                      np.array([np.nan]), np.nan) for m in ("a", "b", "a+b")}
+            states.append(diag.update(k, t, res).diagnosis.state)
+        if valid_symptoms:
+            assert set(states[:round(onset / 0.1) - 1]) == {"no_fault"}, states
+            assert states[-1] == "detected", states
+        else:
+            assert set(states) == {"not_valid"}, states
+
+
 def test_no_isolation_by_elimination(tmp_path):
     """The true fault's model is away: the least bad other hypothesis is never isolated; the
     diagnosis is 'detected, not isolable' naming the table's candidate and its absent model."""

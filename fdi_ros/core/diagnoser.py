@@ -154,6 +154,12 @@ class Diagnoser:
             state = "isolated"  # a step without valid residuals does not undo an isolation
         if symptoms is not None and not symptoms.valid and state == "no_fault":
             state = "not_valid"
+        if symptoms is not None and symptoms.valid and not any(symptoms.levels) \
+                and state == "not_valid":
+            # the parity equations judged the segment and found nothing: fault-free, whether
+            # or not enough hypotheses were valid to compete (they isolate, they do not
+            # detect; e.g. with the EGR valve open, where the hypotheses' maps do not hold)
+            state = "no_fault"
         if symptoms is not None and symptoms.valid and any(symptoms.levels) \
                 and state in ("no_fault", "not_valid"):
             state = "detected"

@@ -26,8 +26,8 @@ import numpy as np
 from fdi_ros.core.types import Diagnosis, FaultEvent, FeatureVector, ResidualVector, SampleBlock
 
 PACKAGE = "fdi_msgs"
-MESSAGES = ("SensorBlock", "Features", "Residuals", "FeatureBlock", "ResidualBlock", "Symptoms",
-            "Diagnosis", "FaultEvent", "FaultRecord")
+MESSAGES = ("SensorBlock", "Features", "Residuals", "FeatureBlock", "ResidualBlock",
+            "ResidualBundle", "Symptoms", "Diagnosis", "FaultEvent", "FaultRecord")
 
 # Topic -> message type of the graph. One table, used by nodes, recorder, replayer and bag tools.
 TOPICS: dict[str, str] = {
@@ -37,6 +37,8 @@ TOPICS: dict[str, str] = {
     # the batched path of the live graph: the vectors of one sensor block per message
     "/fdi/feature_blocks": f"{PACKAGE}/msg/FeatureBlock",
     "/fdi/residual_blocks": f"{PACKAGE}/msg/ResidualBlock",
+    # a model host's ResidualBlocks of one feature block together (nodes/bundle.py)
+    "/fdi/residual_bundles": f"{PACKAGE}/msg/ResidualBundle",
     "/fdi/symptoms": f"{PACKAGE}/msg/Symptoms",
     "/fdi/diagnosis": f"{PACKAGE}/msg/Diagnosis",
     "/fdi/fault_inject": f"{PACKAGE}/msg/FaultEvent",
@@ -44,7 +46,7 @@ TOPICS: dict[str, str] = {
 }
 # the same vectors as /fdi/features and /fdi/residuals, a sensor block per message (transport
 # between the graph's nodes): not recorded unless asked for
-BATCHED_TOPICS = ("/fdi/feature_blocks", "/fdi/residual_blocks")
+BATCHED_TOPICS = ("/fdi/feature_blocks", "/fdi/residual_blocks", "/fdi/residual_bundles")
 
 
 def msg_dir() -> Path:
@@ -328,6 +330,12 @@ def to_feature_list_shared(m: Any) -> list[FeatureVector]:
         if len(_DECODED) > 8:
             _DECODED.popitem(last=False)
     return hit
+
+
+def to_bundle_list(m: Any) -> list[ResidualVector]:
+    """The residual vectors of a ResidualBundle message, block by block (ValueError if one
+    is malformed)."""
+    return [rv for block in m.blocks for rv in to_residual_list(block)]
 
 
 def to_residual_list(m: Any) -> list[ResidualVector]:

@@ -52,12 +52,29 @@ class ModelIO:
             FeatureBlock if self.batched else Features,
             p("feature_blocks_topic" if self.batched else "features_topic"),
             self._on_block if self.batched else self._on_one, DATA_IN_QOS)
+        # in a model host: a block's answers leave with the host's other nodes' (nodes/bundle)
+        self._bundler = getattr(node, "bundler", None) if self.batched else None
+        self._held: list[Any] | None = None
+        if self._bundler is not None:
+            self._bundler.join(self)
+
+    @property
+    def blocks_publisher(self) -> Any:
+        return self._blocks
 
     def _on_one(self, m: Any) -> None:
         self._decoded(lambda: [msgs.to_features(m)])
 
     def _on_block(self, m: Any) -> None:
-        self._decoded(lambda: msgs.to_feature_list_shared(m))
+        if self._bundler is None:
+            self._decoded(lambda: msgs.to_feature_list_shared(m))
+            return
+        self._held = []
+        try:
+            self._decoded(lambda: msgs.to_feature_list_shared(m))
+        finally:
+            held, self._held = self._held, None
+            self._bundler.answer(self, int(m.block_index), held)
 
     def _decoded(self, decode: Callable[[], list[FeatureVector]]) -> None:
         try:
@@ -75,9 +92,14 @@ class ModelIO:
         if self._blocks is not None:
             for i in range(0, len(out), BLOCK_MAX):
                 for msg in self._fac.residual_blocks(out[i:i + BLOCK_MAX]):
-                    self._blocks.publish(msg)
+                    if self._held is not None:  # answering a feature block in a host
+                        self._held.append(msg)
+                    else:
+                        self._blocks.publish(msg)
 
     def release(self) -> None:
+        if self._bundler is not None:
+            self._bundler.leave(self)
         self.node.destroy_subscription(self.sub)
         for pub in (self._pub, self._blocks):
             if pub is not None:
@@ -90,11 +112,15 @@ def supervisor_inputs(batched: bool) -> tuple[tuple[str, Any, Callable[[Any], li
     from fdi_msgs.msg import FeatureBlock, Features, ResidualBlock, Residuals
 
     from fdi_ros.core.supervision import DATA_TOPICS
+    from fdi_ros.nodes.bundle import BUNDLES_TOPIC
 
     f_t, r_t = DATA_TOPICS[batched]
-    if batched:
+    if batched:   # (model hosts send their nodes' residual blocks as one bundle: nodes/bundle)
+        from fdi_msgs.msg import ResidualBundle
+
         return ((r_t, ResidualBlock, msgs.to_residual_list),
-                (f_t, FeatureBlock, msgs.to_feature_list))
+                (f_t, FeatureBlock, msgs.to_feature_list),
+                (BUNDLES_TOPIC, ResidualBundle, msgs.to_bundle_list))
     return ((r_t, Residuals, lambda m: [msgs.to_residuals(m)]),
             (f_t, Features, lambda m: [msgs.to_features(m)]))
 

@@ -51,10 +51,22 @@ def hosted_node(spec: str) -> Any:
                                   "--params-file", path], use_global_arguments=False)
 
 
+def hosted_nodes(specs: list[str]) -> list[Any]:
+    """The host's nodes, sending their answers to a feature block as one message
+    (:mod:`fdi_ros.nodes.bundle`)."""
+    from fdi_ros.nodes.bundle import Bundler
+
+    nodes = [hosted_node(s) for s in specs]
+    bundler = Bundler(nodes[0])
+    for n in nodes:
+        n.bundler = bundler
+    return nodes
+
+
 def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if args is None else args)
     a = parse_args(argv)
-    return run_nodes(lambda: [hosted_node(s) for s in a.node], executor=a.executor,
+    return run_nodes(lambda: hosted_nodes(a.node), executor=a.executor,
                      args=[sys.argv[0], *argv])
 
 

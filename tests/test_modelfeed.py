@@ -34,7 +34,11 @@ def test_feed_answers_from_the_step_after_the_switch_whatever_comes_first():
         # comes a random time later (or earlier than that diagnosis)
         switch, lag = rng.randint(1, 30), rng.randint(0, 40) + 0.5
         activated = max(lag + 0.1, switch + lag + rng.uniform(-3.0, 40.0))
-        events = sorted([("f", k, k) for k in range(80)] +
+        # the features' own channel late by a random time, in order: features of steps up to
+        # the switch may reach the node after its activation
+        arrive = list(itertools.accumulate(
+            (k + rng.expovariate(1 / 10.0) for k in range(80)), max))
+        events = sorted([("f", k, arrive[k]) for k in range(80)] +
                         [("d", k, k + lag) for k in range(80)] +
                         [("a", -1, activated)], key=lambda e: e[2])
         for kind, k, _ in events:

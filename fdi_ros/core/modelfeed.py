@@ -52,9 +52,12 @@ class ModelFeed(Generic[T]):
         return self.active and not self.waiting
 
     def features(self, index: int, item: T) -> list[T]:
-        """Features ``index`` arrived."""
+        """Features ``index`` arrived (answered at once while answering, unless they are of a
+        step up to the switch that put the model on line: features can reach the node after
+        its activation although they were sent before the switch, and offline the model
+        starts after it)."""
         if self.answering:
-            return [item]
+            return [item] if self.since is None or int(index) > self.since else []
         self._kept.append((int(index), item))
         return []
 

@@ -45,6 +45,10 @@ NODE_KINDS = {
 MODELS_SECTION = "fdi_models"
 
 
+# the largest ROS domain id whose DDS ports exist (ROS 2 documents 0-232)
+MAX_DOMAIN_ID = 232
+
+
 @dataclass
 class NodeProcess:
     name: str
@@ -95,6 +99,11 @@ class Graph:
         self.echo = echo
         self.env = dict(os.environ if env is None else env)
         self.env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+        domain = self.env.get("ROS_DOMAIN_ID", "0").strip() or "0"
+        if not domain.isdigit() or int(domain) > MAX_DOMAIN_ID:
+            # Fast DDS derives its ports from the domain id: above 232 it logs an RTPS error
+            # in every process and the graph never discovers itself
+            raise ValueError(f"ROS_DOMAIN_ID={domain!r}: a domain id is 0-{MAX_DOMAIN_ID}")
         # many node processes share few cores: one BLAS thread each (spinning BLAS worker
         # threads of one node would take the core another node needs)
         self.env.setdefault("OPENBLAS_NUM_THREADS", "1")

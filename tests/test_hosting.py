@@ -164,3 +164,14 @@ def test_bench_pace_gives_the_segment_rate_asked():
     assert plant_pace(top) == (top, 1.0)
     rpm, pace = plant_pace(6000.0)
     assert rpm == top and abs(rpm * pace / 30.0 - 200.0) < 1e-9
+
+
+@pytest.mark.parametrize("domain", ["233", "241", "-1", "abc"])
+def test_a_domain_id_without_dds_ports_is_refused_before_any_node_starts(domain):
+    """Above 232 Fast DDS has no ports for the domain: every node process would log an RTPS
+    error and the graph would never discover itself; the launcher says so instead."""
+    from fdi_ros.launcher import Graph
+
+    with pytest.raises(ValueError, match="domain id is 0-232"):
+        Graph(ROOT / "config" / "diesel.yaml", env={"ROS_DOMAIN_ID": domain}, echo=None)
+    assert Graph(ROOT / "config" / "diesel.yaml", env={"ROS_DOMAIN_ID": "232"}, echo=None)

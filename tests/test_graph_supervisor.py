@@ -117,8 +117,12 @@ def test_external_deactivate_and_frozen_preprocessor_fault_free(diesel_bank, tmp
             fb.values = fb.values[:-1]
             rb = fac.residual_blocks([_fake_residuals("nominal", i) for i in (1, 2)])[0]
             rb.status = rb.status[:1]
+            from fdi_msgs.msg import ResidualBundle
+
+            bundle = ResidualBundle(header=rb.header, blocks=[rb])   # as a model host sends
             done["pokers"] = [(w.node.create_publisher(type(m), t, DATA_QOS), m) for t, m in (
-                ("/fdi/feature_blocks", fb), ("/fdi/residual_blocks", rb))]
+                ("/fdi/feature_blocks", fb), ("/fdi/residual_blocks", rb),
+                ("/fdi/residual_bundles", bundle))]
         if "poked" not in done and d.t >= 4.0 and all(
                 p.get_subscription_count() > 0 for p, _ in done["pokers"]):
             for p, m in done["pokers"]:

@@ -43,6 +43,7 @@ def _bundler(readers: int):
     b._cls = lambda header, blocks: list(blocks)
     b._pub = _Pub(readers)
     b._members, b._block, b._answered, b._pending, b.bundles = [], None, [], [], 0
+    b._since = 0.0
     return b
 
 
@@ -78,6 +79,23 @@ def test_collector_sends_each_block_once_in_one_message_or_per_node():
         assert not [t for t in bundled + direct if t[1] in inactive]
         # at most one message per block (a lost answer: block 0 leaves with block 1's turn)
         assert len(b._pub.sent) <= 2
+
+
+def test_a_block_a_node_never_answers_leaves_after_a_while(monkeypatch):
+    from fdi_ros.nodes import bundle
+
+    clock = [100.0]
+    monkeypatch.setattr(bundle.time, "monotonic", lambda: clock[0])
+    b = _bundler(readers=1)
+    one, two = _IO(), _IO()
+    b.join(one)
+    b.join(two)
+    b.answer(one, 3, [_Msg("last")])   # the data's last block; two's copy was lost
+    b._stale()
+    assert not b._pub.sent
+    clock[0] += 2 * bundle.STALE_S
+    b._stale()
+    assert [[m.tag for m in msg] for msg in b._pub.sent] == [["last"]]
 
 
 def test_a_node_leaving_sends_what_it_holds():

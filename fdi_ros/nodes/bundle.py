@@ -14,16 +14,19 @@ while the bundle publisher has fewer matched readers than the node's block publi
 up, before discovery has matched the supervisor's bundle reader; or while a user's node reads
 the per-node blocks), and whatever a node answers outside a block callback (the backlog
 answered on activation) is published by the node itself. A block one node never answers (its
-message lost) leaves with the next block's.
+message lost) leaves with the next block's, or after ``STALE_S`` on the steady clock (the
+last block of the data).
 """
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 from fdi_ros.nodes.common import DATA_QOS
 
 BUNDLES_TOPIC = "/fdi/residual_bundles"
+STALE_S = 0.05  # a block some node has not answered this long leaves without it
 
 
 class Bundler:
@@ -38,7 +41,16 @@ class Bundler:
         self._block: int | None = None  # the feature block being answered
         self._answered: list[Any] = []
         self._pending: list[tuple[Any, list[Any]]] = []
+        self._since = 0.0  # steady time of the block's first answer
         self.bundles = 0   # messages sent (for tests and reports)
+        if hasattr(node, "create_timer"):
+            from fdi_ros.nodes.spin import wall_timer
+
+            wall_timer(node, STALE_S, self._stale)
+
+    def _stale(self) -> None:
+        if self._block is not None and time.monotonic() - self._since > STALE_S:
+            self.flush()
 
     def join(self, io: Any) -> None:
         self._members.append(io)
@@ -53,7 +65,7 @@ class Bundler:
         """``io``'s ResidualBlocks for feature block ``block`` (empty: nothing to send)."""
         if block != self._block:
             self.flush()   # an older block some node never answered
-            self._block = block
+            self._block, self._since = block, time.monotonic()
         self._answered.append(io)
         if messages:
             self._pending.append((io, messages))

@@ -109,17 +109,31 @@ def test_a_node_leaving_sends_what_it_holds():
     assert [[m.tag for m in msg] for msg in b._pub.sent] == [["a"]]
 
 
+def _short_scenario(tmp_path: Path) -> Path:
+    sc = yaml.safe_load((ROOT / "config" / "scenarios" / "demo_diesel_leak.yaml").read_text())
+    sc.pop("faults")
+    sc["duration_s"] = 4.0
+    path = tmp_path / "scenario.yaml"
+    path.write_text(yaml.safe_dump(sc))
+    return path
+
+
+def _every_segment_diagnosed(w) -> None:
+    indices = sorted(int(d.index) for _, d in w.seen.diagnoses)
+    assert indices == list(range(indices[0], indices[0] + len(indices)))
+    pipe = [st for _, arr in w.seen.diagnostics for st in arr.status
+            if st.name == "fdi_supervisor: pipeline"]
+    skipped = [int(v.value) for st in pipe for v in st.values if v.key == "skipped_segments"]
+    assert skipped and max(skipped) == 0
+
+
 @pytest.mark.graph
 def test_two_hosts_send_bundles_and_every_segment_is_diagnosed(diesel_bank, tmp_path):
     from fdi_msgs.msg import ResidualBundle
 
     from fdi_ros.livegraph import run_live
 
-    sc = yaml.safe_load((ROOT / "config" / "scenarios" / "demo_diesel_leak.yaml").read_text())
-    sc.pop("faults")
-    sc["duration_s"] = 4.0
-    path = tmp_path / "scenario.yaml"
-    path.write_text(yaml.safe_dump(sc))
+    path = _short_scenario(tmp_path)
     got: list = []
 
     def during(graph, w, run) -> None:
@@ -133,9 +147,28 @@ def test_two_hosts_send_bundles_and_every_segment_is_diagnosed(diesel_bank, tmp_
     assert run.ended
     bundles = got[1:]
     assert bundles and max(len(ids) for ids in bundles) >= 3, bundles[:5]
-    indices = sorted(int(d.index) for _, d in w.seen.diagnoses)
-    assert indices == list(range(indices[0], indices[0] + len(indices)))
-    pipe = [st for _, arr in w.seen.diagnostics for st in arr.status
-            if st.name == "fdi_supervisor: pipeline"]
-    skipped = [int(v.value) for st in pipe for v in st.values if v.key == "skipped_segments"]
-    assert skipped and max(skipped) == 0
+    _every_segment_diagnosed(w)
+
+
+@pytest.mark.graph
+def test_a_reader_of_the_blocks_of_your_own_gets_every_models_blocks(diesel_bank, tmp_path):
+    """A node of yours reading /fdi/residual_blocks (not the bundles): the hosts send per
+    node, so it gets every model's blocks, and the supervisor still diagnoses every segment."""
+    from fdi_msgs.msg import ResidualBlock
+
+    from fdi_ros.core.graphconfig import load_graph_config
+    from fdi_ros.livegraph import run_live
+
+    config = ROOT / "config" / "diesel.yaml"
+    got: list = []
+
+    def during(graph, w, run) -> None:
+        if not got:
+            got.append(w.node.create_subscription(
+                ResidualBlock, "/fdi/residual_blocks", lambda m: got.append(m.model_id), 500))
+
+    run, w = run_live(config, scenario=_short_scenario(tmp_path), during=during,
+                      timeout_s=120, hosting={"mode": "container", "containers": 2})
+    assert run.ended
+    assert set(got[1:]) == {e.id for e in load_graph_config(config).bank}
+    _every_segment_diagnosed(w)

@@ -62,6 +62,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_hosting_arguments(p)
 
 
+# Plant seconds at the start of the data left out of ``pipeline_ms_p95_after_startup``: in one
+# of ten fault-free 6000 rpm runs the symptoms of the first 180 segments came 0.87 s late, all
+# at once (the preprocessor's start-up hold was not it: 1-2 ms in the runs logged; cause not
+# found), which alone makes the run's p95
+STARTUP_S = 2.0
+
+
 def _pct(x: list[float], q: float) -> float:
     import numpy as np
 
@@ -152,6 +159,7 @@ def measure(config: Path, scenario: Path, sc: Any, hosting: dict, pace: float = 
         return b_wall[i] if i < len(b_wall) else math.nan
 
     lat, lat_all = [], []  # lat_all: segments the whole bank computed (none taken off line)
+    steady: list[float] = []  # after the first STARTUP_S of data (the start-up hold, below)
     online = {int(d.index): len(d.models_online) for _, d in w.seen.diagnoses}
     bank = max(online.values(), default=0)
     for wall, m in w.seen.symptoms:
@@ -160,6 +168,8 @@ def measure(config: Path, scenario: Path, sc: Any, hosting: dict, pace: float = 
             lat.append(1e3 * (wall - a))
             if online.get(int(m.index)) == bank:
                 lat_all.append(lat[-1])
+            if b_t and float(m.t_s) >= b_t[0] + STARTUP_S:
+                steady.append(lat[-1])
     onset_lat, onset_segments = [], []
     for t_on in (f.t for f in sc.faults if f.active):
         a = block_arrival(t_on)
@@ -180,6 +190,7 @@ def measure(config: Path, scenario: Path, sc: Any, hosting: dict, pace: float = 
         "pipeline_ms_p50": round(_pct(lat, 50), 2), "pipeline_ms_p95": round(_pct(lat, 95), 2),
         "pipeline_ms_max": round(max(lat), 2) if lat else None,
         "pipeline_segments_p95": round(_pct(lat, 95) / seg_wall_ms, 2),
+        "pipeline_ms_p95_after_startup": round(_pct(steady, 95), 2),
         "whole_bank_online": {"segments": len(lat_all), "models": bank,
                               "pipeline_ms_p50": round(_pct(lat_all, 50), 2),
                               "pipeline_ms_p95": round(_pct(lat_all, 95), 2)},
@@ -232,7 +243,8 @@ def run(args: argparse.Namespace) -> int:
                                          r["pipeline_ms_p95"]))[(len(runs) - 1) // 2]
     if len(runs) > 1:
         result["runs"] = [{k: r[k] for k in ("segments_diagnosed", "pipeline_ms_p50",
-                                            "pipeline_ms_p95", "cores_used")} for r in runs]
+                                            "pipeline_ms_p95", "pipeline_ms_p95_after_startup",
+                                            "cores_used")} for r in runs]
     out: dict[str, Any] = {"rpm": args.rpm, "models": len(cfg.bank),
                            "segment_ms": round(30e3 / args.rpm, 3),
                            "segments_per_s": round(args.rpm / 30.0, 3),

@@ -200,7 +200,19 @@ def _local_pool(items: list[tuple[str, str | None]], workers: int) -> list[dict[
         import fdi_ros.core.graphconfig  # noqa: F401
         import fdi_ros.plants  # noqa: F401
     order = sorted(range(len(items)), key=lambda i: -_bag_size(items[i][0]))
-    return map_processes(_one, items, workers=workers, method=method, order=order)
+    if method != "fork":
+        return map_processes(_one, items, workers=workers, method=method, order=order)
+    import gc
+
+    # the parent's objects out of the collector's reach while the workers run: a collection
+    # in a forked worker writes to every object it walks, which copies the parent's pages
+    # (four bags on two workers, measured in one process: 1.38-1.69 s -> 1.27-1.30 s)
+    gc.collect()
+    gc.freeze()
+    try:
+        return map_processes(_one, items, workers=workers, method=method, order=order)
+    finally:
+        gc.unfreeze()
 
 
 def local_dask_cluster(workers: int) -> Any:

@@ -192,27 +192,28 @@ def _bag_size(path: str) -> int:
 def _local_pool(items: list[tuple[str, str | None]], workers: int) -> list[dict[str, Any]]:
     """The bags on ``workers`` local processes, the largest first (the pool stays busy to
     the end); forked where the platform can (no start-up imports), else spawned."""
+    import gc
     import multiprocessing as mp
 
-    method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
-    if method == "fork":   # the workers inherit the modules instead of importing them each
+    fork = "fork" in mp.get_all_start_methods()
+    if fork:   # the workers inherit the modules instead of importing them each
         import fdi_ros.core.diagnoser  # noqa: F401
         import fdi_ros.core.graphconfig  # noqa: F401
         import fdi_ros.plants  # noqa: F401
-    order = sorted(range(len(items)), key=lambda i: -_bag_size(items[i][0]))
-    if method != "fork":
-        return map_processes(_one, items, workers=workers, method=method, order=order)
-    import gc
 
-    # the parent's objects out of the collector's reach while the workers run: a collection
-    # in a forked worker writes to every object it walks, which copies the parent's pages
-    # (four bags on two workers, measured in one process: 1.38-1.69 s -> 1.27-1.30 s)
-    gc.collect()
-    gc.freeze()
+        # the parent's objects out of the collector's reach while the workers run: a
+        # collection in a forked worker writes to every object it walks, which copies the
+        # parent's pages (four bags on two workers, measured in one process: 1.38-1.69 s ->
+        # 1.27-1.30 s)
+        gc.collect()
+        gc.freeze()
+    order = sorted(range(len(items)), key=lambda i: -_bag_size(items[i][0]))
     try:
-        return map_processes(_one, items, workers=workers, method=method, order=order)
+        return map_processes(_one, items, workers=workers, method="fork" if fork else "spawn",
+                             order=order)
     finally:
-        gc.unfreeze()
+        if fork:
+            gc.unfreeze()
 
 
 def local_dask_cluster(workers: int) -> Any:

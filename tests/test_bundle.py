@@ -42,7 +42,7 @@ def _bundler(readers: int):
     b = Bundler.__new__(Bundler)   # the collector without a node: its publisher faked
     b._cls = lambda header, blocks: list(blocks)
     b._pub = _Pub(readers)
-    b._members, b._block, b._answered, b._pending, b.bundles = [], None, [], [], 0
+    b._members, b._block, b._answered, b._pending = [], None, [], []
     b._since = 0.0
     return b
 

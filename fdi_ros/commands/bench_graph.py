@@ -159,7 +159,7 @@ def measure(config: Path, scenario: Path, sc: Any, hosting: dict, pace: float = 
         return b_wall[i] if i < len(b_wall) else math.nan
 
     lat, lat_all = [], []  # lat_all: segments the whole bank computed (none taken off line)
-    steady: list[float] = []  # after the first STARTUP_S of data (the start-up hold, below)
+    steady: list[float] = []  # after the first STARTUP_S of data
     online = {int(d.index): len(d.models_online) for _, d in w.seen.diagnoses}
     bank = max(online.values(), default=0)
     for wall, m in w.seen.symptoms:

@@ -66,15 +66,14 @@ class ModelIO:
         self._decoded(lambda: [msgs.to_features(m)])
 
     def _on_block(self, m: Any) -> None:
-        if self._bundler is None:
-            self._decoded(lambda: msgs.to_feature_list_shared(m))
-            return
-        self._held = []
+        if self._bundler is not None:
+            self._held = []
         try:
             self._decoded(lambda: msgs.to_feature_list_shared(m))
         finally:
-            held, self._held = self._held, None
-            self._bundler.answer(self, int(m.block_index), held)
+            if self._bundler is not None:
+                held, self._held = self._held or [], None
+                self._bundler.answer(self, int(m.block_index), held)
 
     def _decoded(self, decode: Callable[[], list[FeatureVector]]) -> None:
         try:
@@ -106,8 +105,9 @@ class ModelIO:
                 self.node.destroy_lifecycle_publisher(pub)
 
 
-def supervisor_inputs(batched: bool) -> tuple[tuple[str, Any, Callable[[Any], list]], ...]:
-    """(topic, message class, decode to a list of vectors) of the residuals and the features
+def supervisor_inputs(batched: bool
+                      ) -> tuple[tuple[str, Any, Callable[[Any], list], bool], ...]:
+    """(topic, message class, decode to a list of vectors, residuals (else features)) of what
     the supervisor reads (see :data:`fdi_ros.core.supervision.DATA_TOPICS`)."""
     from fdi_msgs.msg import FeatureBlock, Features, ResidualBlock, Residuals
 
@@ -118,11 +118,11 @@ def supervisor_inputs(batched: bool) -> tuple[tuple[str, Any, Callable[[Any], li
     if batched:   # (model hosts send their nodes' residual blocks as one bundle: nodes/bundle)
         from fdi_msgs.msg import ResidualBundle
 
-        return ((r_t, ResidualBlock, msgs.to_residual_list),
-                (f_t, FeatureBlock, msgs.to_feature_list),
-                (BUNDLES_TOPIC, ResidualBundle, msgs.to_bundle_list))
-    return ((r_t, Residuals, lambda m: [msgs.to_residuals(m)]),
-            (f_t, Features, lambda m: [msgs.to_features(m)]))
+        return ((r_t, ResidualBlock, msgs.to_residual_list, True),
+                (f_t, FeatureBlock, msgs.to_feature_list, False),
+                (BUNDLES_TOPIC, ResidualBundle, msgs.to_bundle_list, True))
+    return ((r_t, Residuals, lambda m: [msgs.to_residuals(m)], True),
+            (f_t, Features, lambda m: [msgs.to_features(m)], False))
 
 
 def fed(logger: Any, convert: Callable[[Any], list], feed: Callable[[Any, float], list],

@@ -42,11 +42,9 @@ class Bundler:
         self._answered: list[Any] = []
         self._pending: list[tuple[Any, list[Any]]] = []
         self._since = 0.0  # steady time of the block's first answer
-        self.bundles = 0   # messages sent (for tests and reports)
-        if hasattr(node, "create_timer"):
-            from fdi_ros.nodes.spin import wall_timer
+        from fdi_ros.nodes.spin import wall_timer
 
-            wall_timer(node, STALE_S, self._stale)
+        wall_timer(node, STALE_S, self._stale)
 
     def _stale(self) -> None:
         if self._block is not None and time.monotonic() - self._since > STALE_S:
@@ -90,4 +88,3 @@ class Bundler:
                     pub.publish(m)
         if together:
             self._pub.publish(self._cls(header=together[-1].header, blocks=together))
-            self.bundles += 1

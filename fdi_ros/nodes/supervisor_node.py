@@ -52,9 +52,8 @@ class SupervisorNode(Node):
         self.create_subscription(Header, eod.END_OF_FEATURES_TOPIC, self._on_end, LATCHED_QOS)
         ins = bankio.supervisor_inputs(self.core.batched)  # the bank's vectors (see bankio)
         self._subs = {t: self.create_subscription(c, t, bankio.fed(
-            self.get_logger(), f, g, self._do), DATA_IN_QOS)
-            for (t, c, f), g in zip(ins, (self.core.residual, self.core.features,
-                                          self.core.residual))}
+            self.get_logger(), f, self.core.residual if r else self.core.features, self._do),
+            DATA_IN_QOS) for t, c, f, r in ins}
         self.create_subscription(SensorBlock, "/fdi/sensor_block", lambda raw: self.core.block(
             msgs.raw_header_stamp(cast(bytes, raw)), time.monotonic()), DATA_IN_QOS, raw=True)
         self.create_service(GetFaults, "/fdi/get_faults", lambda q, r: GetFaults.Response(

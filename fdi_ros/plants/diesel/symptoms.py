@@ -464,8 +464,7 @@ def _finish(fv: FeatureVector, r: np.ndarray, valid: bool, status: str, regime: 
         if not cfg.knows(regime):
             valid, status = False, f"not valid here: no thresholds for regime {regime!r}"
         else:
-            sq = _z(r, cfg, regime) ** 2
-            norm = math.sqrt(sq.sum() / sq.size)
+            norm = _rms(_z(r, cfg, regime))
     return ResidualVector(model_id=model_id, index=fv.index, t=fv.t_end, valid=valid,
                           status=status, names=RESIDUALS, units=RESIDUAL_UNITS,
                           values=np.asarray(r, dtype=float), norm=norm, regime=regime)
@@ -499,7 +498,13 @@ def block_rms(E: np.ndarray, block: int = 10) -> float:
     # sums divided by counts: np.mean's own arithmetic, without its per-call overhead
     full = E[r:].reshape(-1, block, E.shape[1]).sum(axis=1) / block
     means = np.vstack([E[:r].sum(axis=0, keepdims=True) / r, full]) if r else full
-    sq = means ** 2
+    return _rms(means)
+
+
+def _rms(x: np.ndarray) -> float:
+    """Root mean square of every element (np.sqrt(np.mean(x**2)) to the bit, without numpy's
+    per-call overhead: asked per segment and bank model)."""
+    sq = x ** 2
     return math.sqrt(sq.sum() / sq.size)
 
 

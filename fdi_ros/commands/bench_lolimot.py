@@ -99,6 +99,9 @@ def run(args: argparse.Namespace) -> int:
             comps = {"cos": np.cos(ang), "sin": np.sin(ang)}
         t_lol, t_ref, t_peer, pred, pred_peer, n_mod = 0.0, 0.0, 0.0, {}, {}, []
         for c, yc in comps.items():
+            # the data as each learner takes them, copied out before the clocks start
+            Xtr, ytr, Xva, yva = X[ktr], yc[ktr], X[kva], yc[kva]
+            Xtrva, ytrva = X[ktrva], yc[ktrva]
             tl: list[float] = []
             tr_: list[float] = []
             tp: list[float] = []
@@ -108,11 +111,11 @@ def run(args: argparse.Namespace) -> int:
                     Lolimot._fast_splits = fast
                     m = cfg.lolimot()
                     t0 = time.perf_counter()
-                    m.fit(X[ktr], yc[ktr], X_val=X[kva], y_val=yc[kva])
+                    m.fit(Xtr, ytr, X_val=Xva, y_val=yva)
                     times.append(time.perf_counter() - t0)
                 pr = _peer(args.peer, args.seed)
                 t0 = time.perf_counter()
-                pr.fit(X[ktrva], yc[ktrva])
+                pr.fit(Xtrva, ytrva)
                 tp.append(time.perf_counter() - t0)
             t_lol += min(tl)
             t_ref += min(tr_)

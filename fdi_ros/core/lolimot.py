@@ -122,18 +122,46 @@ class _Fitted(NamedTuple):
 def _log_mu(Z: FloatArray, lo: FloatArray, hi: FloatArray, k_sigma: float) -> FloatArray:
     """Unnormalised log validity of every cell, (N, M): -1/2 sum_d ((z_d - c_d) / sigma_d)^2.
     Each column depends on its own cell only (a split recomputes two columns)."""
-    centre = 0.5 * (lo + hi)
-    sigma = k_sigma * (hi - lo)
-    q = ((Z[:, None, :] - centre[None]) / sigma[None]) ** 2
-    out: FloatArray = -0.5 * q.sum(axis=2)
+    scale = np.sqrt(0.5) / (k_sigma * (hi - lo))   # 1 / (sqrt(2) sigma)
+    shift = 0.5 * (lo + hi) * scale
+    out: FloatArray = np.zeros((Z.shape[0], lo.shape[0]))
+    for d in range(Z.shape[1]):   # a few inputs: one (N, M) pass each, no 3-D temporary
+        u = np.multiply.outer(Z[:, d], scale[:, d])
+        u -= shift[:, d]
+        u *= u
+        out -= u
     return out
 
 
 def _normalised(logmu: FloatArray) -> FloatArray:
     """Phi (N, M) from the log validities; subtracting the row maximum keeps far points finite."""
-    logmu = logmu - logmu.max(axis=1, keepdims=True)
+    logmu = logmu - logmu.max(axis=-1, keepdims=True)
     mu = np.exp(logmu)
-    phi: FloatArray = mu / mu.sum(axis=1, keepdims=True)
+    phi: FloatArray = mu / mu.sum(axis=-1, keepdims=True)
+    return phi
+
+
+def _bin_index(Z: FloatArray, bins: int) -> NDArray[np.int64]:
+    """Row-major index of each sample's bin on a ``bins**p`` grid over the unit box (one
+    input at a time: reductions and casts along rows of (N, p) are slow)."""
+    flat = np.zeros(Z.shape[0], dtype=np.int64)
+    for d in range(Z.shape[1]):
+        flat = flat * bins + np.clip((Z[:, d] * bins).astype(np.int64), 0, bins - 1)
+    return flat
+
+
+def _normalised_fit(logmu: FloatArray) -> FloatArray:
+    """:func:`_normalised` for the training samples, with fewer passes: a sample inside the
+    training box lies within ~1.4 sigma per input of its own cell's centre, so the largest
+    validity does not underflow and the row maximum need not be subtracted (if a row's sum
+    is ever that small, the shifted form is used); the row sums as a matrix-vector product."""
+    mu = np.exp(logmu)
+    ones = np.ones(mu.shape[-1])
+    s = mu @ ones
+    if not np.all(s > 1e-200):
+        mu = np.exp(logmu - logmu.max(axis=-1, keepdims=True))
+        s = mu @ ones
+    phi: FloatArray = mu / s[..., None]
     return phi
 
 
@@ -233,17 +261,18 @@ class Lolimot:
             raise ValueError("one input name per input column is required")
         self.output_name = output_name
 
-        x_min = Xa.min(axis=0)
-        x_scale = Xa.max(axis=0) - x_min
+        Xt = np.ascontiguousarray(Xa.T)   # reductions along rows of (N, p) are slow
+        x_min = Xt.min(axis=1)
+        x_scale = Xt.max(axis=1) - x_min
         x_scale[x_scale <= 0] = 1.0
-        Z = (Xa - x_min) / x_scale
+        Z = ((Xt - x_min[:, None]) / x_scale[:, None]).T   # columns contiguous
         coverage = self._coverage_grid(Z)
         w: FloatArray = np.ones(n)
         if self.compress_bins:
             Z, ya, w = self._pool(Z, ya)
         vdata: tuple[FloatArray, FloatArray, FloatArray] | None = None
         if val is not None:
-            Zv = (val[0] - x_min) / x_scale
+            Zv = ((val[0].T - x_min[:, None]) / x_scale[:, None]).T
             vdata = self._pool(Zv, val[1]) if self.compress_bins else \
                 (Zv, val[1], np.ones(Zv.shape[0]))
         stats = self._stats(Z, ya)
@@ -251,15 +280,26 @@ class Lolimot:
         def rmse(e: FloatArray, wt: FloatArray) -> float:
             return float(np.sqrt(np.sum(wt * e ** 2) / np.sum(wt)))
 
-        def val_rmse(lo: FloatArray, hi: FloatArray, theta: FloatArray) -> float:
+        Lv: FloatArray | None = None   # the validation samples' log validities
+
+        def val_rmse(lo: FloatArray, hi: FloatArray, theta: FloatArray,
+                     worst: int | None = None) -> float:
+            """Validation RMSE; after a split of cell ``worst`` (fast path) only the two new
+            cells' log validities are computed."""
+            nonlocal Lv
             assert vdata is not None
             Zq, yq, wq = vdata
-            return rmse(yq - self._blend(Zq, self._validity(Zq, lo, hi), theta), wq)
+            if worst is None or Lv is None or not self._fast_splits:
+                Lv = _log_mu(Zq, lo, hi, self.k_sigma)
+            else:
+                Lv = np.concatenate([np.delete(Lv, worst, axis=1),
+                                     _log_mu(Zq, lo[-2:], hi[-2:], self.k_sigma)], axis=1)
+            return rmse(yq - self._blend(Zq, _normalised(Lv), theta), wq)
 
         lo: FloatArray = np.zeros((1, p))
         hi: FloatArray = np.ones((1, p))
         L = _log_mu(Z, lo, hi, self.k_sigma)
-        phi = _normalised(L)
+        phi = _normalised_fit(L)
         theta = self._solve(stats, w, phi)
         err = ya - self._blend(Z, phi, theta)
         snapshots = [(lo, hi, theta)]
@@ -276,6 +316,7 @@ class Lolimot:
             from tqdm import tqdm
             bar = tqdm(total=self.max_models - 1, desc=f"LOLIMOT {output_name}", leave=False)
         nit = 0
+        vanished = 1e-12 * (1.0 + float(np.abs(ya).max()))
         while lo.shape[0] < self.max_models:
             local_loss = phi.T @ (w * err ** 2)
             local_loss[frozen] = -np.inf
@@ -284,35 +325,41 @@ class Lolimot:
                 break
             worst = int(np.argmax(local_loss))
             keep = np.arange(lo.shape[0]) != worst
-            best: tuple[float, int, FloatArray, FloatArray, FloatArray, FloatArray,
-                        FloatArray, FloatArray] | None = None
-            for d in range(p):
-                cand = self._split(Z, w, lo, hi, worst, d)
-                if cand is None:
-                    continue
-                c_lo, c_hi = cand
-                if self._fast_splits:   # two new columns; the others as they were
-                    c_L = np.concatenate(
-                        [L[:, keep], _log_mu(Z, c_lo[-2:], c_hi[-2:], self.k_sigma)], axis=1)
+            w_in = w.copy()   # the sample weights inside the cell, zero outside
+            for d in range(p):   # per input: reductions along rows of (N, p) are slow
+                w_in[(Z[:, d] < lo[worst, d]) | (Z[:, d] > hi[worst, d])] = 0.0
+            cands = [(d, c) for d in range(p)
+                     if (c := self._split(Z, w_in, lo, hi, worst, d)) is not None]
+            best: tuple[int, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray,
+                        FloatArray] | None = None
+            if cands:
+                # every admissible split of the cell evaluated in one batch (K, N, M)
+                if self._fast_splits:   # two new columns each; the others as they were
+                    c_L = np.empty((len(cands), Z.shape[0], lo.shape[0] + 1))
+                    c_L[:, :, :-2] = L[:, keep]
+                    new = _log_mu(Z, np.vstack([c[0][-2:] for _, c in cands]),
+                                  np.vstack([c[1][-2:] for _, c in cands]), self.k_sigma)
+                    c_L[:, :, -2:] = new.reshape(Z.shape[0], len(cands), 2).transpose(1, 0, 2)
                 else:
-                    c_L = _log_mu(Z, c_lo, c_hi, self.k_sigma)
-                c_phi = _normalised(c_L)
+                    c_L = np.stack([_log_mu(Z, c_lo, c_hi, self.k_sigma)
+                                    for _, (c_lo, c_hi) in cands])
+                c_phi = _normalised_fit(c_L)
                 c_theta = self._solve(stats, w, c_phi)
                 c_err = ya - self._blend(Z, c_phi, c_theta)
-                sse = float(np.sum(w * c_err ** 2))
-                if best is None or sse < best[0]:
-                    best = (sse, d, c_lo, c_hi, c_theta, c_phi, c_err, c_L)
+                j = int(np.argmin(c_err ** 2 @ w))
+                d, (c_lo, c_hi) = cands[j]
+                best = (d, c_lo, c_hi, c_theta[j], c_phi[j], c_err[j], c_L[j])
             if best is None:
                 frozen[worst] = True
                 continue
             nit += 1
-            _, d, lo, hi, theta, phi, err, L = best
+            d, lo, hi, theta, phi, err, L = best
             frozen = np.append(np.delete(frozen, worst), [False, False])
             splits.append((worst, d))
             snapshots.append((lo, hi, theta))
             loss.append(rmse(err, w))
             if vdata is not None:
-                val_loss.append(val_rmse(lo, hi, theta))
+                val_loss.append(val_rmse(lo, hi, theta, worst))
             crit.append(val_loss[-1] if vdata is not None else
                         self._aicc(err, w, lo.shape[0], p))
             if bar is not None:
@@ -320,7 +367,7 @@ class Lolimot:
             if len(crit) - 1 - int(np.argmin(crit)) >= self.patience:
                 message = f"criterion did not improve for {self.patience} splits"
                 break
-            if loss[-1] <= 1e-12 * (1.0 + float(np.abs(ya).max())):
+            if loss[-1] <= vanished:
                 message = "training error vanished"
                 break
         if bar is not None:
@@ -337,8 +384,7 @@ class Lolimot:
     def _pool(self, Z: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Bin means of (Z, y) on a compress_bins**p grid, weighted by the sample counts."""
         B = self.compress_bins
-        idx = np.clip((Z * B).astype(np.int64), 0, B - 1)
-        flat = np.ravel_multi_index(tuple(idx.T), (B,) * Z.shape[1])
+        flat = _bin_index(Z, B)
         # the occupied bins in ascending order (np.unique's, by counting: no sort)
         counts = np.bincount(flat, minlength=B ** Z.shape[1]) if B ** Z.shape[1] <= 4 * \
             flat.size + 65536 else None
@@ -350,14 +396,14 @@ class Lolimot:
         Zp = np.column_stack([np.bincount(inv, weights=Z[:, d]) for d in range(Z.shape[1])])
         return Zp / w[:, None], np.bincount(inv, weights=y) / w, w
 
-    def _split(self, Z: FloatArray, w: FloatArray, lo: FloatArray, hi: FloatArray, i: int,
+    def _split(self, Z: FloatArray, w_in: FloatArray, lo: FloatArray, hi: FloatArray, i: int,
                d: int) -> tuple[FloatArray, FloatArray] | None:
         """Halve cell ``i`` along input ``d``; None if a half holds too few samples. The two
-        halves come last (the other cells keep their order)."""
+        halves come last (the other cells keep their order); ``w_in``: the sample weights in
+        cell ``i``, zero outside."""
         mid = 0.5 * (lo[i, d] + hi[i, d])
-        inside = np.all((lo[i] <= Z) & (hi[i] >= Z), axis=1)
-        n_left = float(np.sum(w[inside & (Z[:, d] < mid)]))
-        if min(n_left, float(np.sum(w[inside])) - n_left) < self.min_samples_per_model:
+        n_left = float(w_in @ (Z[:, d] < mid))
+        if min(n_left, float(w_in.sum()) - n_left) < self.min_samples_per_model:
             return None
         lo_a, hi_a = lo[i].copy(), hi[i].copy()
         hi_a[d] = mid
@@ -387,21 +433,25 @@ class Lolimot:
         AA, Ay = stats
         q = Ay.shape[1]
         pw = phi * w[:, None]
-        G = (pw.T @ AA).reshape(-1, q, q)
-        b = pw.T @ Ay
+        pwT = np.swapaxes(pw, -1, -2)
+        G = (pwT @ AA).reshape(*pwT.shape[:-1], q, q)
+        b = pwT @ Ay
         reg = np.eye(q)
         reg[0, 0] = 0.0
-        wsum = pw.sum(axis=0)
+        wsum = pw.sum(axis=-2)
         # A tiny absolute term keeps cells with no weight at all solvable.
-        G = G + (self.ridge * wsum[:, None, None] + 1e-12) * reg[None]
-        G[:, 0, 0] += 1e-12
+        G = G + (self.ridge * wsum[..., None, None] + 1e-12) * reg
+        G[..., 0, 0] += 1e-12
         theta: FloatArray = np.linalg.solve(G, b[..., None])[..., 0]
         return theta
 
     @staticmethod
     def _blend(Z: FloatArray, phi: FloatArray, theta: FloatArray) -> FloatArray:
-        local = theta[:, 0][None, :] + Z @ theta[:, 1:].T
-        out: FloatArray = (phi * local).sum(axis=1)
+        # sum_m phi_m (theta_m0 + z . theta_m1:) as phi @ theta, then one input at a time
+        pt = phi @ theta
+        out: FloatArray = pt[..., 0]
+        for d in range(Z.shape[1]):
+            out = out + Z[:, d] * pt[..., d + 1]
         return out
 
     @staticmethod
@@ -418,9 +468,7 @@ class Lolimot:
         bins = self.coverage_bins
         if bins ** p > _MAX_GRID_CELLS:
             return np.ones((1,) * p, dtype=bool)
-        idx = np.clip((Z * bins).astype(int), 0, bins - 1)
-        counts = np.zeros((bins,) * p, dtype=int)
-        np.add.at(counts, tuple(idx.T), 1)
+        counts = np.bincount(_bin_index(Z, bins), minlength=bins ** p).reshape((bins,) * p)
         return _closing(counts >= self.coverage_min_count)
 
     # ------------------------------------------------------------------ using

@@ -156,11 +156,15 @@ class Graph:
                 spec = yaml.safe_dump(spec, default_flow_style=True, width=10_000).strip()
             pfiles[e.node_name] = self._params_file(
                 e.node_name, {**common, "model_id": e.id, "model": spec})
+        # the symptoms' model answers first in its host (nodes/bundle.py)
+        urgent = {e.node_name for e in self.cfg.bank
+                  if e.id == (self.cfg.symptoms or {}).get("model")}
         for i_host, names in enumerate(self.hosting.groups(list(pfiles))):
             if self.hosting.mode == "process":
                 self._add(names[0], "residual_node", pfile=pfiles[names[0]])
                 continue
-            host = [f"--node={n}={pfiles[n]}" for n in names]
+            host = [f"--node={n}={pfiles[n]}" for n in names] + [
+                f"--urgent={n}" for n in names if n in urgent]
             self.nodes.append(NodeProcess(
                 name=f"fdi_model_host_{i_host}", module="model_host_node", hosted=tuple(names),
                 argv=[sys.executable, "-m", "fdi_ros.nodes.model_host_node",

@@ -39,12 +39,8 @@ class _Msg:
 def _bundler(readers: int):
     from fdi_ros.nodes.bundle import Bundler
 
-    b = Bundler.__new__(Bundler)   # the collector without a node: its publisher faked
-    b._cls = lambda header, blocks: list(blocks)
-    b._pub = _Pub(readers)
-    b._members, b._block, b._answered, b._pending = [], None, [], []
-    b._since = 0.0
-    return b
+    # the collector without a node: its publisher faked, a bundle is the list of its blocks
+    return Bundler(_Pub(readers), lambda header, blocks: list(blocks))
 
 
 def test_collector_sends_each_block_once_in_one_message_or_per_node():
@@ -107,6 +103,81 @@ def test_a_node_leaving_sends_what_it_holds():
     assert not b._pub.sent      # waiting for the second node
     b.leave(two)                # cleaned up: the block is complete without it
     assert [[m.tag for m in msg] for msg in b._pub.sent] == [["a"]]
+
+
+class _Block:
+    def __init__(self, index: int) -> None:
+        self.block_index = index
+
+
+class _Node(_IO):
+    """A hosted node's ModelIO as the bundler sees it: it answers a FeatureBlock with one
+    ResidualBlock tagged (block, node), in its callback or when the bundler runs it."""
+
+    def __init__(self, bundler, name: str, log: list) -> None:
+        super().__init__()
+        self.bundler, self.name, self.log = bundler, name, log
+
+    def callback(self, m: _Block) -> None:   # the subscription callback (ModelIO._on_block)
+        if not self.bundler.defer(self, m):
+            self.take_block(m)
+
+    def take_block(self, m: _Block) -> None:
+        self.log.append((self.name, m.block_index))
+        self.bundler.answer(self, m.block_index, [_Msg((m.block_index, self.name))])
+
+
+def test_the_urgent_node_answers_each_block_first_whatever_the_executor_order(monkeypatch):
+    """The symptoms' model computes a block before the host's other nodes and its answer
+    leaves on its own; every node answers every block once and in order, whatever order the
+    executor runs the callbacks in; a block the urgent node never gets is answered by the
+    others after STALE_S; a node leaving drops nothing of the others."""
+    from fdi_ros.nodes import bundle
+
+    clock = [0.0]
+    monkeypatch.setattr(bundle.time, "monotonic", lambda: clock[0])
+    seed = random.randrange(2**32)
+    print(f"seed {seed}")
+    rng = random.Random(seed)
+    for _ in range(100):
+        b, log = _bundler(readers=1), []
+        nodes = [_Node(b, f"n{i}", log) for i in range(rng.randint(2, 6))]
+        urgent = nodes[rng.randrange(len(nodes))]
+        for n in nodes:
+            b.join(n, urgent=n is urgent)
+        lost = rng.randrange(1, 8)   # a block the urgent node's reader never gets
+        queue = []                   # the executor's events: (node, block), per node in order
+        for k in range(8):
+            events = [(n, k) for n in nodes if not (n is urgent and k == lost)]
+            rng.shuffle(events)
+            queue += events
+        # the executor may run a later block's events of one node before another's earlier
+        # ones (separate readers), never one node's own out of order
+        for _ in range(len(queue)):
+            i = rng.randrange(len(queue) - 1)
+            if queue[i][0] is not queue[i + 1][0] and rng.random() < 0.3:
+                queue[i], queue[i + 1] = queue[i + 1], queue[i]
+        for n, k in queue:
+            clock[0] += 0.001
+            n.callback(_Block(k))
+        for _ in range(2):   # the stale timer's turns: deferred blocks run, then leave
+            clock[0] += 2 * bundle.STALE_S
+            b._stale()
+        for n in nodes:   # each node answered its blocks once, in order
+            want = [k for k in range(8) if not (n is urgent and k == lost)]
+            assert [k for name, k in log if name == n.name] == want, seed
+        sent = [[m.tag for m in msg] for msg in b._pub.sent]
+        assert sorted(t for msg in sent for t in msg) == sorted(
+            (k, n.name) for n in nodes for k in range(8) if not (n is urgent and k == lost))
+        start = next(i for i, (name, _) in enumerate(log) if name == urgent.name)
+        for k in range(8):
+            if k == lost or any(e[1] == k for e in log[:start]):
+                continue   # (before the urgent node's first answer: start-up, no waiting)
+            # the urgent node's answer to block k leaves alone, before any other's answer
+            first = next(i for i, msg in enumerate(sent) if any(t[0] == k for t in msg))
+            assert sent[first] == [(k, urgent.name)], (seed, k, sent)
+            assert log.index((urgent.name, k)) == min(
+                i for i, e in enumerate(log) if e[1] == k), (seed, k)
 
 
 def _short_scenario(tmp_path: Path) -> Path:

@@ -56,7 +56,7 @@ class ModelIO:
         self._bundler = getattr(node, "bundler", None) if self.batched else None
         self._held: list[Any] | None = None
         if self._bundler is not None:
-            self._bundler.join(self)
+            self._bundler.join(self, urgent=bool(getattr(node, "bundle_urgent", False)))
 
     @property
     def blocks_publisher(self) -> Any:
@@ -66,6 +66,11 @@ class ModelIO:
         self._decoded(lambda: [msgs.to_features(m)])
 
     def _on_block(self, m: Any) -> None:
+        if self._bundler is None or not self._bundler.defer(self, m):
+            self.take_block(m)
+
+    def take_block(self, m: Any) -> None:
+        """Answer FeatureBlock ``m`` (in a host: the answer goes to its bundler)."""
         if self._bundler is not None:
             self._held = []
         try:

@@ -16,6 +16,14 @@ the per-node blocks), and whatever a node answers outside a block callback (the 
 answered on activation) is published by the node itself. A block one node never answers (its
 message lost) leaves with the next block's, or after ``STALE_S`` on the steady clock (the
 last block of the data).
+
+A node the host names *urgent* (the model whose residuals give the symptoms) does not wait
+for the others: it computes a block first and its answer leaves at once, in a bundle of its
+own, so the symptoms need not wait for every hypothesis of the host. The executor runs the
+nodes' callbacks for one message in an order of the middleware's choosing; a node's callback
+for a block the urgent nodes have not answered yet is therefore deferred (:meth:`defer`) and
+run right after their answer (or after ``STALE_S``, if they do not answer it). Every node
+still takes its own messages in order.
 """
 
 from __future__ import annotations
@@ -32,30 +40,71 @@ STALE_S = 0.05  # a block some node has not answered this long leaves without it
 class Bundler:
     """The host's collector of its nodes' ResidualBlocks per feature block."""
 
-    def __init__(self, node: Any) -> None:
-        from fdi_msgs.msg import ResidualBundle
-
-        self._cls = ResidualBundle
-        self._pub = node.create_publisher(ResidualBundle, BUNDLES_TOPIC, DATA_QOS)
+    def __init__(self, pub: Any, make: Any) -> None:
+        """``pub``: the bundle publisher; ``make(header=, blocks=)``: a bundle message."""
+        self._pub, self._make = pub, make
         self._members: list[Any] = []   # the nodes' ModelIOs reading feature blocks
+        self._urgent: list[Any] = []    # members whose answers leave at once
         self._block: int | None = None  # the feature block being answered
         self._answered: list[Any] = []
         self._pending: list[tuple[Any, list[Any]]] = []
         self._since = 0.0  # steady time of the block's first answer
+        self._urgent_last: dict[Any, int] = {}   # the last block each urgent node answered
+        self._deferred: list[tuple[Any, Any, float]] = []   # (node io, FeatureBlock, since)
+
+    @classmethod
+    def on(cls, node: Any) -> Bundler:
+        """The host's bundler, publishing and checking for stale blocks through ``node``."""
+        from fdi_msgs.msg import ResidualBundle
+
         from fdi_ros.nodes.spin import wall_timer
 
-        wall_timer(node, STALE_S, self._stale)
+        b = cls(node.create_publisher(ResidualBundle, BUNDLES_TOPIC, DATA_QOS), ResidualBundle)
+        wall_timer(node, STALE_S, b._stale)
+        return b
 
     def _stale(self) -> None:
-        if self._block is not None and time.monotonic() - self._since > STALE_S:
+        now = time.monotonic()
+        if self._deferred and now - self._deferred[0][2] > STALE_S:
+            self._run_deferred(None)   # the urgent nodes do not answer: the others go on
+        if self._block is not None and now - self._since > STALE_S:
             self.flush()
 
-    def join(self, io: Any) -> None:
+    def defer(self, io: Any, m: Any) -> bool:
+        """Whether ``io``'s callback for FeatureBlock ``m`` waits for the urgent nodes' answer
+        to it (kept here and run after it); never for an urgent node, nor before every
+        urgent node has answered a block at all (start-up), nor behind a node's own
+        deferred blocks (its blocks stay in order)."""
+        if not any(d[0] is io for d in self._deferred):
+            if io in self._urgent or not self._urgent:
+                return False
+            last = min(self._urgent_last.get(u, -1) for u in self._urgent)
+            if last < 0 or last >= int(m.block_index):
+                return False
+        self._deferred.append((io, m, time.monotonic()))
+        return True
+
+    def _run_deferred(self, through: int | None) -> None:
+        """Run the deferred callbacks of blocks up to ``through`` (None: all), in order."""
+        while self._deferred and (through is None
+                                  or int(self._deferred[0][1].block_index) <= through):
+            io, m, _ = self._deferred.pop(0)
+            io.take_block(m)
+
+    def join(self, io: Any, *, urgent: bool = False) -> None:
         self._members.append(io)
+        if urgent:
+            self._urgent.append(io)
 
     def leave(self, io: Any) -> None:
-        if io in self._members:
-            self._members.remove(io)
+        was_urgent = io in self._urgent
+        for group in (self._members, self._urgent):
+            if io in group:
+                group.remove(io)
+        self._urgent_last.pop(io, None)
+        self._deferred = [d for d in self._deferred if d[0] is not io]
+        if was_urgent:
+            self._run_deferred(None)
         self._answered = [a for a in self._answered if a is not io]
         self._flush_if_complete()
 
@@ -65,9 +114,14 @@ class Bundler:
             self.flush()   # an older block some node never answered
             self._block, self._since = block, time.monotonic()
         self._answered.append(io)
-        if messages:
+        if io in self._urgent:   # leaves at once, then the others waiting for it run
+            self._send([(io, messages)])
+            self._urgent_last[io] = block
+        elif messages:
             self._pending.append((io, messages))
         self._flush_if_complete()
+        if io in self._urgent and all(u in self._urgent_last for u in self._urgent):
+            self._run_deferred(min(self._urgent_last[u] for u in self._urgent))
 
     def _flush_if_complete(self) -> None:
         if self._block is not None and all(m in self._answered for m in self._members):
@@ -76,6 +130,11 @@ class Bundler:
     def flush(self) -> None:
         pending, self._pending = self._pending, []
         self._answered, self._block = [], None
+        self._send(pending)
+
+    def _send(self, pending: list[tuple[Any, list[Any]]]) -> None:
+        """The nodes' blocks as one bundle, or each by its node while the bundle has fewer
+        readers than the node's own topic."""
         together = []
         readers = self._pub.get_subscription_count()
         for io, messages in pending:
@@ -87,4 +146,4 @@ class Bundler:
                 for m in messages:
                     pub.publish(m)
         if together:
-            self._pub.publish(self._cls(header=together[-1].header, blocks=together))
+            self._pub.publish(self._make(header=together[-1].header, blocks=together))

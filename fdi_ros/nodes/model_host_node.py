@@ -34,6 +34,9 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--node", action="append", default=[], metavar="NAME=PARAMS_FILE",
                    help="one hosted residual node: its name and its ROS parameter file")
     p.add_argument("--executor", choices=EXECUTORS[:2], default="single")
+    p.add_argument("--urgent", action="append", default=[], metavar="NAME",
+                   help="a hosted node whose answers leave at once, not bundled with the "
+                        "others' (the symptoms' model)")
     a = p.parse_args(own)
     if not a.node:
         p.error("at least one --node NAME=PARAMS_FILE is needed")
@@ -51,22 +54,25 @@ def hosted_node(spec: str) -> Any:
                                   "--params-file", path], use_global_arguments=False)
 
 
-def hosted_nodes(specs: list[str]) -> list[Any]:
+def hosted_nodes(specs: list[str], urgent: tuple[str, ...] = ()) -> list[Any]:
     """The host's nodes, sending their answers to a feature block as one message
-    (:mod:`fdi_ros.nodes.bundle`)."""
+    (:mod:`fdi_ros.nodes.bundle`); the ``urgent`` ones created first (their feature
+    nodes come first) and their answers sent at once."""
     from fdi_ros.nodes.bundle import Bundler
 
-    nodes = [hosted_node(s) for s in specs]
-    bundler = Bundler(nodes[0])
+    first = sorted(specs, key=lambda s: s.partition("=")[0] not in urgent)
+    nodes = [hosted_node(s) for s in first]
+    bundler = Bundler.on(nodes[0])
     for n in nodes:
         n.bundler = bundler
+        n.bundle_urgent = n.get_name() in urgent
     return nodes
 
 
 def main(args: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if args is None else args)
     a = parse_args(argv)
-    return run_nodes(lambda: hosted_nodes(a.node), executor=a.executor,
+    return run_nodes(lambda: hosted_nodes(a.node, tuple(a.urgent)), executor=a.executor,
                      args=[sys.argv[0], *argv])
 
 

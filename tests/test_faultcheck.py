@@ -85,6 +85,27 @@ def test_pacer_rate_change_applies_from_then_on():
             p.set_rate(bad, w0, 0.0)
 
 
+def test_a_stalled_plant_goes_on_at_its_rate_instead_of_bursting():
+    """A plant held up for longer than CATCH_UP_S sends at most CATCH_UP_S of plant time at
+    once, then follows its rate from there; a plant keeping up is paced as before."""
+    from fdi_ros.core.pacing import CATCH_UP_S
+
+    rng = np.random.default_rng(seed := int(np.random.SeedSequence().entropy % 2**31))
+    rate, stall = float(rng.uniform(0.5, 4.0)), float(rng.uniform(0.2, 3.0))
+    p = Pacer(rate)
+    p.start(100.0, 0.0)
+    assert p.target_within(101.0, rate - 0.01, CATCH_UP_S) == pytest.approx(rate), seed
+    # held up at plant time `rate` for `stall` wall seconds
+    t = p.target_within(101.0 + stall, rate, CATCH_UP_S)
+    assert t == pytest.approx(rate + CATCH_UP_S), seed
+    # a second later, having kept up since, it is paced from the new anchor
+    assert p.target_within(102.0 + stall, t + rate - 0.01, CATCH_UP_S) == pytest.approx(
+        t + rate), seed
+    fast = Pacer(0.0)   # as fast as the graph takes it: never held back
+    fast.start(4.0, 0.0)
+    assert fast.target_within(5.0, 1.0, CATCH_UP_S) == math.inf
+
+
 def test_pacer_starts_once_readers_are_there_and_the_delay_has_passed():
     p = Pacer(2.0)
     assert not p.start_when_ready(1.0, 0.0, readers_ok=False, delay_s=0.5)

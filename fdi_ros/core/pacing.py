@@ -9,6 +9,10 @@ from __future__ import annotations
 
 import math
 
+# A live plant more than this much plant time behind its pacer (its process held up) goes on
+# at its rate from where it is instead of sending the blocks it missed in one burst.
+CATCH_UP_S = 0.1
+
 
 class Pacer:
     """``target(wall) = t_anchor + (wall - wall_anchor) * rate``; rate 0 = no limit.
@@ -67,6 +71,19 @@ class Pacer:
         if self.rate == 0.0:
             return math.inf
         return self._t0 + (wall - self._wall0) * self.rate
+
+
+    def target_within(self, wall: float, t_plant: float, behind_s: float) -> float:
+        """:meth:`target` for a plant at ``t_plant``, kept at most ``behind_s`` of plant time
+        ahead of it: a source that stalled goes on at its rate from where it is (re-anchored)
+        instead of racing through everything it missed, which would reach the graph as one
+        burst to queue. Plant time is the diagnosis' only clock, so nothing diagnosed
+        changes; the data only end later in wall time."""
+        target = self.target(wall)
+        if math.isfinite(target) and self.rate > 0.0 and target - t_plant > behind_s:
+            self.start(wall - behind_s / self.rate, t_plant)
+            target = self.target(wall)
+        return target
 
 
 class HoldBack:

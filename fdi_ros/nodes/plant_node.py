@@ -31,7 +31,7 @@ from rclpy.node import Node
 
 from fdi_ros import msgs
 from fdi_ros.core.faultcheck import FaultRequests, describe
-from fdi_ros.core.pacing import Pacer
+from fdi_ros.core.pacing import CATCH_UP_S, Pacer
 from fdi_ros.nodes.common import (
     DATA_QOS,
     LATCHED_QOS,
@@ -123,7 +123,7 @@ class PlantNode(Node):
         now = time.monotonic()
         if not self._gate.check(now, self._pacer, self.runner.t):
             return  # nothing published into the void (see SourceGate)
-        target = self._pacer.target(now)
+        target = self._pacer.target_within(now, self.runner.t, CATCH_UP_S)  # no bursts
         for _ in range(int(self.get_parameter("max_blocks_per_tick").value)):
             if self.runner.done:
                 self._finished = True

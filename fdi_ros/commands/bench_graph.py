@@ -62,10 +62,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_hosting_arguments(p)
 
 
-# Plant seconds at the start of the data left out of ``pipeline_ms_p95_after_startup``: in one
-# of ten fault-free 6000 rpm runs the symptoms of the first 180 segments came 0.87 s late, all
-# at once (the preprocessor's start-up hold was not it: 1-2 ms in the runs logged; cause not
-# found), which alone makes the run's p95
+# Plant seconds at the start of the data left out of ``pipeline_ms_p95_after_startup``: in some
+# runs the symptoms of the first second's segments came up to a second late, which alone made
+# the run's p95 (the plant, held up at the start, sent the blocks it had missed in one burst;
+# bounded since by core/pacing.CATCH_UP_S)
 STARTUP_S = 2.0
 
 

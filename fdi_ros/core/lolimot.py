@@ -154,13 +154,11 @@ def _normalised_fit(logmu: FloatArray) -> FloatArray:
     """:func:`_normalised` for the training samples, with fewer passes: a sample inside the
     training box lies within ~1.4 sigma per input of its own cell's centre, so the largest
     validity does not underflow and the row maximum need not be subtracted (if a row's sum
-    is ever that small, the shifted form is used); the row sums as a matrix-vector product."""
+    is ever that small, :func:`_normalised` is used); the row sums as a matrix-vector product."""
     mu = np.exp(logmu)
-    ones = np.ones(mu.shape[-1])
-    s = mu @ ones
+    s = mu @ np.ones(mu.shape[-1])
     if not np.all(s > 1e-200):
-        mu = np.exp(logmu - logmu.max(axis=-1, keepdims=True))
-        s = mu @ ones
+        return _normalised(logmu)
     phi: FloatArray = mu / s[..., None]
     return phi
 

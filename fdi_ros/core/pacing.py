@@ -72,7 +72,6 @@ class Pacer:
             return math.inf
         return self._t0 + (wall - self._wall0) * self.rate
 
-
     def target_within(self, wall: float, t_plant: float, behind_s: float) -> float:
         """:meth:`target` for a plant at ``t_plant``, kept at most ``behind_s`` of plant time
         ahead of it: a source that stalled goes on at its rate from where it is (re-anchored)

@@ -56,12 +56,11 @@ def hosted_node(spec: str) -> Any:
 
 def hosted_nodes(specs: list[str], urgent: tuple[str, ...] = ()) -> list[Any]:
     """The host's nodes, sending their answers to a feature block as one message
-    (:mod:`fdi_ros.nodes.bundle`); the ``urgent`` ones created first (their feature
-    nodes come first) and their answers sent at once."""
+    (:mod:`fdi_ros.nodes.bundle`); the ``urgent`` ones answer each block first, and their
+    answers leave at once."""
     from fdi_ros.nodes.bundle import Bundler
 
-    first = sorted(specs, key=lambda s: s.partition("=")[0] not in urgent)
-    nodes = [hosted_node(s) for s in first]
+    nodes = [hosted_node(s) for s in specs]
     bundler = Bundler.on(nodes[0])
     for n in nodes:
         n.bundler = bundler

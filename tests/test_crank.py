@@ -10,6 +10,7 @@ from fdi_ros.core.crank import (
     CrankSegmenter,
     crank_harmonics,
     segment_features,
+    segment_rates,
     segment_table,
 )
 from fdi_ros.core.types import SampleBlock
@@ -179,6 +180,57 @@ def test_rate_features_are_backward_differences_carried_across_blocks(seed):
     with pytest.raises(ValueError, match="rate channels"):
         CrankSegmenter(**{**seg_kw, "rate_channels": ("egt",)}).push_table(
             _block(a, t, maf, maf * 1e3, T2=T2))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_quadratic_rate_is_exact_for_a_parabola_and_follows_a_lag_without_delay(seed):
+    """``rate_order`` 2: the end-point slope of the least-squares quadratic over the window.
+    Oracles: on segment means that are a parabola of the (irregular) end times it is the
+    parabola's slope at the end, exactly; on a first-order sensor's step response (time
+    constant tau) ``x + tau rate`` gives back the step an order of magnitude better than the
+    backward difference, whose slope lags by half the window; any block split gives the same;
+    lag < 2 is refused."""
+    rng = np.random.default_rng(seed)
+    lag = int(rng.integers(2, 10))
+    n = 60
+    t = np.cumsum(rng.uniform(0.01, 0.03, n))
+    c = rng.normal(size=3) * (1.0, 30.0, 200.0)
+    x = c[0] + c[1] * t + c[2] * t ** 2
+    ok = np.ones(n, dtype=bool)
+    got = segment_rates(np.arange(n), t, ok, x, lag, order=2)
+    want = c[1] + 2.0 * c[2] * t
+    assert np.isnan(got[:lag]).all()
+    np.testing.assert_allclose(got[lag:], want[lag:], rtol=1e-7, atol=1e-7 * abs(c[1]))
+    # a slow sensor's response to a temperature step at t_s (means sampled at segment ends)
+    tau, step, t_s = float(rng.uniform(0.4, 1.2)), float(rng.uniform(20.0, 100.0)), 0.3
+    t = np.arange(1, 200) * float(rng.uniform(0.01, 0.02))
+    sensor = 320.0 + step * (1.0 - np.exp(-np.maximum(t - t_s, 0.0) / tau))
+    after = t > t_s + (lag + 2) * 0.02      # the window is past the step's kink
+    errs = {}
+    for order in (1, 2):
+        r = segment_rates(np.arange(t.size), t, np.ones(t.size, bool), sensor, lag, order)
+        errs[order] = np.max(np.abs(sensor + tau * r - (320.0 + step))[after])
+    assert errs[2] < 0.1 * errs[1] and errs[2] < 0.01 * step
+    with pytest.raises(ValueError, match="rate order"):
+        segment_rates(np.arange(n), t[:n], ok, x, 1, order=2)
+    # carried across blocks like the backward difference
+    a = np.arange(0.0, 180.0 * 30)
+    ta = a / 12000.0
+    T2 = 320.0 + 30.0 * np.sin(2 * np.pi * ta / 0.3)
+    maf = _sig(a, 165.0, 20.0, 10.0)
+    seg_kw = {**ENGINE, "rate_channels": ("T2",), "rate_lag": lag, "rate_order": 2}
+    whole = CrankSegmenter(**seg_kw).push_table(_block(a, ta, maf, maf * 1e3, T2=T2))
+    seg = CrankSegmenter(**seg_kw)
+    cuts = np.sort(rng.choice(np.arange(1, a.size - 1), size=20, replace=False))
+    parts = []
+    for lo, hi in zip(np.r_[0, cuts], np.r_[cuts, a.size]):
+        parts += seg.push(_block(a[lo:hi], ta[lo:hi], maf[lo:hi], maf[lo:hi] * 1e3,
+                                 T2=T2[lo:hi]))
+    j = whole.names.index("T2_rate")
+    np.testing.assert_allclose([g.values[j] for g in parts], whole.values[:, j], rtol=1e-9,
+                               atol=1e-7)
+    with pytest.raises(ValueError, match="rate order"):
+        CrankSegmenter(**{**seg_kw, "rate_lag": 1})
 
 
 def test_eta_v_and_density_formula():

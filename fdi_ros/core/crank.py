@@ -407,10 +407,11 @@ class CrankSegmenter:
     n_harmonics : harmonics fitted jointly (1..K) to keep higher orders out of the first.
     max_gap_deg : largest crank-angle step that is not a gap (default: relative rule, a step
         more than 1.5 x the smaller neighbouring step is a gap).
-    rate_channels, rate_lag : channels whose segment means also get a rate feature
-        ``<channel>_rate`` [unit/s]: the backward difference over ``rate_lag`` consecutive
-        valid segments (NaN until that many follow an invalid segment or a reset), e.g. to
-        compensate a slow sensor's lag (``x + tau dx/dt``).
+    rate_channels, rate_lag, rate_order : channels whose segment means also get a rate
+        feature ``<channel>_rate`` [unit/s] over ``rate_lag`` + 1 consecutive valid segments
+        (NaN until that many follow an invalid segment or a reset), e.g. to compensate a slow
+        sensor's lag (``x + tau dx/dt``): the backward difference (``rate_order`` 1) or the
+        end-point slope of a least-squares quadratic (2; see :func:`segment_rates`).
 
     ``push(block)`` returns the feature vectors of the segments completed by the block.
     A block whose crank angles are not strictly increasing, or that starts at or before the
@@ -419,7 +420,7 @@ class CrankSegmenter:
 
     def __init__(self, *, segment_deg: float, V_D: float, R: float, n_harmonics: int = 3,
                  max_gap_deg: float | None = None, rate_channels: Sequence[str] = (),
-                 rate_lag: int = 8) -> None:
+                 rate_lag: int = 8, rate_order: int = 1) -> None:
         if not (np.isfinite(segment_deg) and segment_deg > 0):
             raise ValueError("segment_deg must be > 0")
         if not (V_D > 0 and R > 0):
@@ -435,6 +436,8 @@ class CrankSegmenter:
         if int(rate_lag) < 1:
             raise ValueError("rate_lag must be >= 1")
         self.rate_lag = int(rate_lag)
+        self.rate_order = int(rate_order)
+        _check_rate_order(self.rate_lag, self.rate_order)
         self.reset()
 
     def reset(self) -> None:
@@ -504,7 +507,8 @@ class CrankSegmenter:
         old = self._rate_hist
         idx, t, ok, x = new if old is None else tuple(
             np.concatenate([a, b]) for a, b in zip(old, new))
-        rates = segment_rates(idx, t, ok, x, self.rate_lag)[idx.size - new[0].size:]
+        rates = segment_rates(idx, t, ok, x, self.rate_lag,
+                              self.rate_order)[idx.size - new[0].size:]
         keep = max(idx.size - self.rate_lag, 0)
         self._rate_hist = (idx[keep:], t[keep:], ok[keep:], x[keep:])
         rate_units = tuple(f"{units[j]}/s" for j in cols)
@@ -517,15 +521,23 @@ class CrankSegmenter:
 
 
 def segment_rates(index: np.ndarray, t: np.ndarray, valid: np.ndarray, x: np.ndarray,
-                  lag: int) -> np.ndarray:
-    """Backward differences ``(x[k] - x[k-lag]) / (t[k] - t[k-lag])`` of consecutive segments
-    (rows (N,) or (N, m)); NaN where the ``lag + 1`` segments up to k are not consecutive
-    indices, all valid and finite."""
+                  lag: int, order: int = 1) -> np.ndarray:
+    """Rates of change of segment means over the ``lag + 1`` consecutive segments up to k
+    (rows (N,) or (N, m)); NaN where those are not consecutive indices, all valid and finite.
+
+    ``order`` 1: the backward difference ``(x[k] - x[k-lag]) / (t[k] - t[k-lag])``, the slope
+    at the window's middle (it lags by half the window); 2: the slope at ``t[k]`` of the
+    quadratic fitted by least squares to the window (a Savitzky-Golay end-point derivative
+    on the segments' own times): no lag for a signal that bends within the window, such as
+    a slow sensor's step response, at somewhat more noise (``lag >= 2``).
+    """
+    _check_rate_order(lag, order)
     X = np.asarray(x, dtype=float).reshape(len(index), -1)
     n = X.shape[0]
     out = np.full(X.shape, np.nan)
     if n <= lag:
         return out.reshape(np.shape(x))
+    T = np.asarray(t, dtype=float)
     k = np.arange(n)
     bad = ~np.asarray(valid, dtype=bool) | ~np.all(np.isfinite(X), axis=1)
     brk = np.concatenate([[True], np.diff(np.asarray(index)) != 1])
@@ -533,11 +545,24 @@ def segment_rates(index: np.ndarray, t: np.ndarray, valid: np.ndarray, x: np.nda
     run_start = np.maximum.accumulate(np.where(brk, k, 0))
     j = k - lag
     ok = (j >= 0) & (last_bad < np.maximum(j, 0)) & (run_start <= j)
-    ok &= np.asarray(t)[k] > np.asarray(t)[np.maximum(j, 0)]
+    ok &= T[k] > T[np.maximum(j, 0)]
     rows = np.flatnonzero(ok)
-    dt = np.asarray(t, dtype=float)[rows] - np.asarray(t, dtype=float)[rows - lag]
-    out[rows] = (X[rows] - X[rows - lag]) / dt[:, None]
+    if order == 1:
+        dt = T[rows] - T[rows - lag]
+        out[rows] = (X[rows] - X[rows - lag]) / dt[:, None]
+        return out.reshape(np.shape(x))
+    win = rows[:, None] - np.arange(lag, -1, -1)            # (R, lag + 1), oldest first
+    s = (T[win] - T[rows][:, None]) / (T[rows] - T[rows - lag])[:, None]   # in -1 .. 0
+    P = np.stack([np.ones_like(s), s, s * s], axis=2)      # (R, lag + 1, 3)
+    coef = np.linalg.solve(np.einsum("rwi,rwj->rij", P, P),
+                           np.einsum("rwi,rwc->ric", P, X[win]))
+    out[rows] = coef[:, 1, :] / (T[rows] - T[rows - lag])[:, None]
     return out.reshape(np.shape(x))
+
+
+def _check_rate_order(lag: int, order: int) -> None:
+    if order not in (1, 2) or (order == 2 and lag < 2):
+        raise ValueError("rate order must be 1, or 2 with rate_lag >= 2")
 
 
 def _empty_table(plant: str) -> SegmentTable:

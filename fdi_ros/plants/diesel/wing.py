@@ -166,8 +166,9 @@ def _hypothesis_current(spec: dict, fault_id: str) -> bool:
 
 
 def _reference_current(d: Path) -> bool:
-    """The reference model set exists and carries its validity region with today's actuator
-    tolerances (sets identified before are rebuilt)."""
+    """The reference model set exists, was identified on today's features and carries its
+    validity region with today's actuator tolerances (sets identified before are rebuilt)."""
+    from fdi_ros.plants.diesel.identify import FEATURES_VERSION
     from fdi_ros.plants.diesel.reference import ACTUATOR_TOL
 
     if not all((d / f).exists() for f in REFERENCE_FILES):
@@ -180,7 +181,8 @@ def _reference_current(d: Path) -> bool:
     # identified in operating regimes, the EGR-open ones included (sets from before are
     # rebuilt)
     info = manifest.get("info", {})
-    if not validity or not info.get("regime") or not info.get("further_regimes"):
+    if not validity or not info.get("regime") or not info.get("further_regimes") \
+            or info.get("features") != FEATURES_VERSION:
         return False
     tol = {r.get("name"): r.get("tol") for r in validity.get("ranges", [])}
     return all(tol.get(k, v) == v for k, v in ACTUATOR_TOL.items())

@@ -12,10 +12,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fdi_ros.core.crank import segment_rates
 from fdi_ros.core.discrepancy.context import LeakSpec
 from fdi_ros.core.discrepancy.model import BASELINES
 from fdi_ros.core.measured import Measured
-from fdi_ros.plants.diesel.plant import T2_RATE_LAG, DieselParams
+from fdi_ros.plants.diesel.plant import T2_RATE_LAG, T2_RATE_ORDER, DieselParams
 
 # as in the plant and the reference identification (one source: the plant's parameters)
 R_DIESEL = DieselParams().R  # J/(kg K)
@@ -53,15 +54,14 @@ class DieselReferenceBaseline:
 
     def _rho2(self, data: Measured) -> np.ndarray:
         """Boost density from p2 and T2, the T2 sensor's lag undone as the reference models
-        were identified (``T2 + tau dT2/dt``, the rate over T2_RATE_LAG samples back)."""
+        were identified (``T2 + tau dT2/dt``, the rate taken as the crank preprocessor takes
+        it: :func:`~fdi_ros.core.crank.segment_rates` over T2_RATE_LAG segments back)."""
         T2 = np.asarray(data["T2"], float)
         tau = self._ref.t2_tau
         if tau > 0 and T2.size > T2_RATE_LAG:
             t = np.asarray(data.t, float)
-            rate = np.zeros(T2.shape)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                rate[T2_RATE_LAG:] = (T2[T2_RATE_LAG:] - T2[:-T2_RATE_LAG]) \
-                    / (t[T2_RATE_LAG:] - t[:-T2_RATE_LAG])
+            ok = np.isfinite(T2) & np.isfinite(t) & np.r_[True, np.diff(t) > 0]
+            rate = segment_rates(np.arange(T2.size), t, ok, T2, T2_RATE_LAG, T2_RATE_ORDER)
             T2 = T2 + tau * np.where(np.isfinite(rate), rate, 0.0)
         return np.asarray(data["p2"], float) / (R_DIESEL * T2)
 

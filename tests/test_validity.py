@@ -171,3 +171,34 @@ def test_a_tip_in_that_closes_the_egr_valve_is_no_leak(diesel_bank):
     assert any(s.symptoms.valid and s.symptoms.regime == "egr_closed_flaps_open"
                for _, _, s in fast if s.diagnosis.t > 6.5)
     assert {s.diagnosis.state for _, _, s in fast} <= {"no_fault", "not_valid"}
+
+
+def test_hard_tip_ins_and_tip_outs_drawn_at_random_give_no_symptom(diesel_bank):
+    """A hard driver, drawn at random (seed printed): at a random speed from part load to
+    near full load in 0.2-1 s and back, the ECU closing and opening the EGR valve, switching
+    the flaps, the boost controller saturating the VGT. No symptom, no isolation, wherever the
+    segments are judged (the calibration's own tip-ins are another seed: 7 of 16 such cases
+    gave a false symptom without them, 8 of 16 before the lags were undone); the batch and the
+    step-wise paths agree."""
+    import secrets
+
+    from fdi_ros.core.diagnoser import diagnose_offline
+    from fdi_ros.core.graphconfig import load_graph_config
+    from fdi_ros.plants.diesel.drive import tips_document
+    from fdi_ros.plants.diesel.identify import simulate_features
+    from fdi_ros.plants.diesel.scenario import load_scenario
+
+    seed = secrets.randbelow(2 ** 31)
+    print(f"seed {seed}")
+    cfg = load_graph_config(diesel_bank)
+    sc = load_scenario(tips_document(seed=seed, events=2, name="tips"))
+    feats, _ = simulate_features(sc, seed=seed % 1000)
+    fast = diagnose_offline(cfg, feats)
+    slow = diagnose_offline(cfg, feats, batch=False)
+    judged = 0
+    for (fv, _, a), (_, _, b) in zip(fast, slow):
+        assert (a.symptoms.valid, a.symptoms.levels) == (b.symptoms.valid, b.symptoms.levels)
+        assert not (a.symptoms.valid and any(a.symptoms.levels)), (seed, fv.t_end, a.symptoms)
+        judged += a.symptoms.valid
+    assert judged > 0.3 * len(fast)
+    assert {s.diagnosis.state for _, _, s in fast} <= {"no_fault", "not_valid"}

@@ -180,6 +180,12 @@ def test_rate_features_are_backward_differences_carried_across_blocks(seed):
     with pytest.raises(ValueError, match="rate channels"):
         CrankSegmenter(**{**seg_kw, "rate_channels": ("egt",)}).push_table(
             _block(a, t, maf, maf * 1e3, T2=T2))
+    # an optional rate channel the blocks lack: no rate for it, the others as before
+    opt = CrankSegmenter(**{**seg_kw, "rate_channels": ("T2", "egt"),
+                            "rate_optional": ("egt",)}).push_table(
+        _block(a, t, maf, maf * 1e3, T2=T2))
+    assert "egt_rate" not in opt.names
+    np.testing.assert_array_equal(opt.column("T2_rate"), whole.column("T2_rate"))
 
 
 @pytest.mark.parametrize("seed", range(4))

@@ -411,7 +411,9 @@ class CrankSegmenter:
         feature ``<channel>_rate`` [unit/s] over ``rate_lag`` + 1 consecutive valid segments
         (NaN until that many follow an invalid segment or a reset), e.g. to compensate a slow
         sensor's lag (``x + tau dx/dt``): the backward difference (``rate_order`` 1) or the
-        end-point slope of a least-squares quadratic (2; see :func:`segment_rates`).
+        end-point slope of a least-squares quadratic (2; see :func:`segment_rates`). A
+        channel of ``rate_optional`` the blocks lack gets no rate; any other missing one
+        raises ValueError.
 
     ``push(block)`` returns the feature vectors of the segments completed by the block.
     A block whose crank angles are not strictly increasing, or that starts at or before the
@@ -420,7 +422,8 @@ class CrankSegmenter:
 
     def __init__(self, *, segment_deg: float, V_D: float, R: float, n_harmonics: int = 3,
                  max_gap_deg: float | None = None, rate_channels: Sequence[str] = (),
-                 rate_lag: int = 8, rate_order: int = 1) -> None:
+                 rate_lag: int = 8, rate_order: int = 1,
+                 rate_optional: Sequence[str] = ()) -> None:
         if not (np.isfinite(segment_deg) and segment_deg > 0):
             raise ValueError("segment_deg must be > 0")
         if not (V_D > 0 and R > 0):
@@ -433,6 +436,7 @@ class CrankSegmenter:
         self.K = int(n_harmonics)
         self.max_gap = max_gap_deg
         self.rate_channels = tuple(rate_channels)
+        self.rate_optional = frozenset(rate_optional)
         if int(rate_lag) < 1:
             raise ValueError("rate_lag must be >= 1")
         self.rate_lag = int(rate_lag)
@@ -498,10 +502,14 @@ class CrankSegmenter:
     def _with_rates(self, h: CrankHarmonics, names: tuple[str, ...], units: tuple[str, ...],
                     vals: np.ndarray) -> tuple[tuple[str, ...], tuple[str, ...], np.ndarray]:
         """Append the rate features of this table's segments (history carried over)."""
-        missing = [c for c in self.rate_channels if c not in names]
+        missing = [c for c in self.rate_channels
+                   if c not in names and c not in self.rate_optional]
         if missing:
             raise ValueError(f"rate channels {missing} are not features of these blocks")
-        cols = [names.index(c) for c in self.rate_channels]
+        have = [c for c in self.rate_channels if c in names]
+        if not have:
+            return names, units, vals
+        cols = [names.index(c) for c in have]
         new = (np.asarray(h.index), np.asarray(h.t_end, dtype=float),
                np.asarray(h.valid, dtype=bool), vals[:, cols])
         old = self._rate_hist
@@ -512,7 +520,7 @@ class CrankSegmenter:
         keep = max(idx.size - self.rate_lag, 0)
         self._rate_hist = (idx[keep:], t[keep:], ok[keep:], x[keep:])
         rate_units = tuple(f"{units[j]}/s" for j in cols)
-        return (names + tuple(f"{c}_rate" for c in self.rate_channels), units + rate_units,
+        return (names + tuple(f"{c}_rate" for c in have), units + rate_units,
                 np.column_stack([vals, rates]))
 
     def push(self, block: SampleBlock) -> list[FeatureVector]:

@@ -243,7 +243,8 @@ class DieselParams:
 T2_RATE_LAG = 8
 T2_RATE_ORDER = 2
 # The VGT's command leads its vanes (an actuator lag, tau_vgt): the command's rate, taken the
-# same way, lets the EGR-open models estimate the vanes' position (cmd - tau d(cmd)/dt).
+# same way, lets the EGR-open models estimate the vanes' position (cmd - tau d(cmd)/dt); data
+# without the VGT command (a CSV, a bench's blocks) get no vgt_rate and the command as it is.
 RATE_CHANNELS = ("T2", "vgt")
 
 
@@ -255,7 +256,8 @@ def crank_segmenter(p: DieselParams | None = None, **options: Any) -> CrankSegme
     three) go to :class:`~fdi_ros.core.crank.CrankSegmenter`."""
     p = DieselParams() if p is None else p
     return CrankSegmenter(**{"segment_deg": p.segment_deg, "V_D": p.V_D, "R": p.R,
-                             "rate_channels": RATE_CHANNELS, "rate_lag": T2_RATE_LAG,
+                             "rate_channels": RATE_CHANNELS, "rate_optional": ("vgt",),
+                             "rate_lag": T2_RATE_LAG,
                              "rate_order": T2_RATE_ORDER, **options})
 
 

@@ -34,6 +34,7 @@ from fdi_ros.plants.diesel.ecu import (
     GATED_ACTUATORS,
     actuator_status,
 )
+from fdi_ros.plants.diesel.plant import TOO_FAST_HOLD
 
 
 @dataclass(frozen=True)
@@ -261,7 +262,13 @@ class BatchedModel:
             settled = np.ones(m, dtype=bool)
         for i in np.flatnonzero(valid & ~(np.isfinite(dp) & np.isfinite(dn))):
             valid[i], status[i] = False, _SETTLING
-        too_fast = {k: self.stream.col(k)[0][k0:] for k in c.invalid_rates}
+        # the largest magnitude over the last TOO_FAST_HOLD segments of the run
+        held = np.empty(2 * m, dtype=np.intp)
+        held[0::2], held[1::2] = np.maximum(rs, k - TOO_FAST_HOLD + 1), k + 1
+        too_fast = {}
+        for key in c.invalid_rates:
+            a = np.abs(np.nan_to_num(self.stream.col(key)[0][k0:], nan=0.0))
+            too_fast[key] = np.maximum.reduceat(np.append(a, 0.0), held)[0::2]
         for k, v in too_fast.items():
             with np.errstate(invalid="ignore"):
                 rows = np.flatnonzero(valid & (np.abs(v) > c.invalid_rates[k]))

@@ -242,6 +242,11 @@ class DieselParams:
 # of the realistic drive, against the plant's true charge temperature.
 T2_RATE_LAG = 8
 T2_RATE_ORDER = 2
+# A rate beyond the gate's "too fast" limit anywhere in the rate's own window makes the
+# segment too fast: at the kink of a temperature swing (+200 K/s to -110 K/s within 0.1 s at a
+# hard tip-in) the fitted slope passes through zero for a segment, and that one segment read
+# eta_V 0.23 off.
+TOO_FAST_HOLD = T2_RATE_LAG + 1
 # The VGT's command leads its vanes (an actuator lag, tau_vgt): the command's rate, taken the
 # same way, lets the EGR-open models estimate the vanes' position (cmd - tau d(cmd)/dt); data
 # without the VGT command (a CSV, a bench's blocks) get no vgt_rate and the command as it is.

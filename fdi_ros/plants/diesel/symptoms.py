@@ -49,6 +49,7 @@ from fdi_ros.core.symptoms import (
 from fdi_ros.core.symptoms import calibrate_thresholds as _calibrate
 from fdi_ros.core.types import FeatureVector, ResidualVector
 from fdi_ros.plants.diesel.ecu import ACTUATOR_SETTLE_S, GATED_ACTUATORS, actuator_status
+from fdi_ros.plants.diesel.plant import TOO_FAST_HOLD
 from fdi_ros.plants.diesel.reference import (
     OUTPUTS,
     TEMPERATURE_SETTLED,
@@ -355,6 +356,9 @@ class QuasiStationarity:
         self._no_fuel: deque[float] = deque()
         # actuator commands' range over ACTUATOR_SETTLE_S (core/sliding: O(1) per segment)
         self._acts = {k: SlidingRange(ACTUATOR_SETTLE_S) for k in GATED_ACTUATORS}
+        # the "too fast" rates' magnitudes over the last TOO_FAST_HOLD segments
+        self._fast: dict[str, deque[float]] = {
+            k: deque(maxlen=TOO_FAST_HOLD) for k in (config.invalid_rates if config else ())}
 
     @property
     def active(self) -> bool:
@@ -367,6 +371,8 @@ class QuasiStationarity:
             q.clear()
         for r in self._acts.values():
             r.clear()
+        for q in self._fast.values():
+            q.clear()
 
     def rates(self, fv: FeatureVector) -> tuple[float, float]:
         """Push one feature vector; (dn/dt [rpm/s], dp2/dt [Pa/s]) or NaNs while settling."""
@@ -379,6 +385,9 @@ class QuasiStationarity:
             self.reset()
             return float("nan"), float("nan")
         self._hist.append((t, n, p2))
+        for k, q in self._fast.items():
+            v = fv.get(k) if k in fv.names else math.nan
+            q.append(abs(v) if math.isfinite(v) else 0.0)
         fuel = fv.get("fuel") if "fuel" in fv.names else float("nan")
         self._n_range.push(t, n)
         self._fuel_range.push(t, fuel)
@@ -421,8 +430,10 @@ class QuasiStationarity:
         if c is None:
             return ""
         lim = c.invalid_rates if invalid else c.max_rates
-        return rate_status({k: fv.get(k) for k in lim if k in fv.names}, lim,
-                           TOO_FAST if invalid else "transient")
+        vals = {k: fv.get(k) for k in lim if k in fv.names}
+        if invalid:   # the largest over the rate's own window (TOO_FAST_HOLD)
+            vals = {k: max(self._fast[k]) if self._fast.get(k) else v for k, v in vals.items()}
+        return rate_status(vals, lim, TOO_FAST if invalid else "transient")
 
     def actuators_moved(self) -> str:
         """The "not valid" status if an actuator command moved within ACTUATOR_SETTLE_S."""
@@ -911,7 +922,10 @@ TEMPERATURE_TOO_FAST = {"T2_rate": 50.0}
 REGIME_ACTUATOR_MOVE = 0.2
 # Margin of the thresholds of the regimes beyond the base one on their largest fault-free
 # excursion (the base regime's 1.25): their six-input maps rest on the identification passes
-# alone and the drives they see lie between those passes' trajectories.
+# alone and the drives they see lie between those passes' trajectories. The transients of
+# every regime get it too: their errors are heavy-tailed and a finite calibration sees few of
+# the largest (with 1.25, 3 of 20 random pairs of hard tip-ins not calibrated on reached
+# 1.01-1.24 times the threshold, a false symptom).
 FURTHER_REGIME_MARGIN = 2.0
 # Fewest calibration segments the transients of a regime on the EGR flow model need to be
 # diagnosed. The calibration drives hold 8934 with the flaps open and 2548 with them closed;
@@ -1006,7 +1020,9 @@ def calibrate_with_residuals(models: ReferenceModelSet,
     valid = np.array([rv.valid and (not rv.regime.endswith(TRANSIENT_SUFFIX) or
                                     rv.regime.removesuffix(TRANSIENT_SUFFIX) in diagnosed)
                       for rv in rvs])
-    kw.setdefault("margins", {ms.regime: FURTHER_REGIME_MARGIN for ms in models.regimes})
+    kw.setdefault("margins", {**{ms.regime: FURTHER_REGIME_MARGIN for ms in models.regimes},
+                              **{ms.regime + TRANSIENT_SUFFIX: FURTHER_REGIME_MARGIN
+                                 for ms in models.regime_sets()}})
     cfg = calibrate_thresholds(R, valid, storage_coeff=coeff, settle_s=settle_s,
                                max_speed_change=max_speed_change,
                                max_fuel_change=max_fuel_change, rate_lag=rate_lag,

@@ -555,16 +555,16 @@ def segment_rates(index: np.ndarray, t: np.ndarray, valid: np.ndarray, x: np.nda
     ok = (j >= 0) & (last_bad < np.maximum(j, 0)) & (run_start <= j)
     ok &= T[k] > T[np.maximum(j, 0)]
     rows = np.flatnonzero(ok)
+    span = (T[rows] - T[rows - lag])[:, None]
     if order == 1:
-        dt = T[rows] - T[rows - lag]
-        out[rows] = (X[rows] - X[rows - lag]) / dt[:, None]
+        out[rows] = (X[rows] - X[rows - lag]) / span
         return out.reshape(np.shape(x))
     win = rows[:, None] - np.arange(lag, -1, -1)            # (R, lag + 1), oldest first
-    s = (T[win] - T[rows][:, None]) / (T[rows] - T[rows - lag])[:, None]   # in -1 .. 0
+    s = (T[win] - T[rows][:, None]) / span                  # in -1 .. 0
     P = np.stack([np.ones_like(s), s, s * s], axis=2)      # (R, lag + 1, 3)
     coef = np.linalg.solve(np.einsum("rwi,rwj->rij", P, P),
                            np.einsum("rwi,rwc->ric", P, X[win]))
-    out[rows] = coef[:, 1, :] / (T[rows] - T[rows - lag])[:, None]
+    out[rows] = coef[:, 1, :] / span
     return out.reshape(np.shape(x))
 
 

@@ -68,9 +68,18 @@ def window_ranges(t: np.ndarray, x: np.ndarray, window: float,
     lo = np.minimum(lo, k)
     if t.size == 0:
         return np.zeros(0)
-    idx = np.empty(2 * t.size, dtype=np.intp)
-    idx[0::2], idx[1::2] = lo, k + 1
-    pad = np.append(np.where(np.isfinite(x), x, np.nan), np.nan)
+    x = np.where(np.isfinite(x), x, np.nan)
     with np.errstate(invalid="ignore"):
-        out: np.ndarray = np.fmax.reduceat(pad, idx)[0::2] - np.fmin.reduceat(pad, idx)[0::2]
+        out: np.ndarray = window_reduce(np.fmax, x, lo) - window_reduce(np.fmin, x, lo)
+    return out
+
+
+def window_reduce(op: np.ufunc, x: np.ndarray, lo: np.ndarray) -> np.ndarray:
+    """For every row k, ``op`` reduced over ``x[lo[k] .. k]`` (``lo[k] <= k``), all rows at
+    once (``op.reduceat``): e.g. ``np.maximum`` for the largest value of a trailing window."""
+    x = np.asarray(x, dtype=float)
+    n = x.shape[0]
+    idx = np.empty(2 * n, dtype=np.intp)
+    idx[0::2], idx[1::2] = lo, np.arange(1, n + 1)
+    out: np.ndarray = op.reduceat(np.append(x, 0.0), idx)[0::2]
     return out

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from fdi_ros.core.sliding import window_ranges
+from fdi_ros.core.sliding import window_ranges, window_reduce
 from fdi_ros.core.symptoms import TOO_FAST, TRANSIENT_SUFFIX, rate_status
 from fdi_ros.core.types import FeatureVector, ResidualVector
 from fdi_ros.plants.diesel.ecu import (
@@ -246,14 +246,12 @@ class BatchedModel:
             lo = np.minimum(lo, k)
             cnt = k - lo + 1
             span_ok = elig & (cnt >= 2) & (t - t[lo] >= 0.8 * c.settle_s)
-            idx = np.empty(2 * m, dtype=np.intp)
-            idx[0::2], idx[1::2] = lo, k + 1
-            npad, fpad = np.append(n, 0.0), np.append(fuel, 0.0)
-            dn = (np.maximum.reduceat(npad, idx)[0::2] - np.minimum.reduceat(npad, idx)[0::2])
+            dn = window_reduce(np.maximum, n, lo) - window_reduce(np.minimum, n, lo)
             bad = np.concatenate([[0], np.cumsum(~np.isfinite(fuel))])
             f_ok = bad[k + 1] - bad[lo] == 0
-            df = np.where(f_ok, np.maximum.reduceat(fpad, idx)[0::2]
-                          - np.minimum.reduceat(fpad, idx)[0::2], 0.0)
+            with np.errstate(invalid="ignore"):
+                df = np.where(f_ok, window_reduce(np.maximum, fuel, lo)
+                              - window_reduce(np.minimum, fuel, lo), 0.0)
             dn = np.where(span_ok, dn, np.nan)
             df = np.where(span_ok, df, np.nan)
             settled = span_ok & (dn <= c.max_speed_change) & (df <= c.max_fuel_change)
@@ -263,12 +261,9 @@ class BatchedModel:
         for i in np.flatnonzero(valid & ~(np.isfinite(dp) & np.isfinite(dn))):
             valid[i], status[i] = False, _SETTLING
         # the largest magnitude over the last TOO_FAST_HOLD segments of the run
-        held = np.empty(2 * m, dtype=np.intp)
-        held[0::2], held[1::2] = np.maximum(rs, k - TOO_FAST_HOLD + 1), k + 1
-        too_fast = {}
-        for key in c.invalid_rates:
-            a = np.abs(np.nan_to_num(self.stream.col(key)[0][k0:], nan=0.0))
-            too_fast[key] = np.maximum.reduceat(np.append(a, 0.0), held)[0::2]
+        held = np.maximum(rs, k - TOO_FAST_HOLD + 1)
+        too_fast = {key: window_reduce(np.maximum, np.abs(np.nan_to_num(
+            self.stream.col(key)[0][k0:], nan=0.0)), held) for key in c.invalid_rates}
         for k, v in too_fast.items():
             with np.errstate(invalid="ignore"):
                 rows = np.flatnonzero(valid & (np.abs(v) > c.invalid_rates[k]))

@@ -238,7 +238,7 @@ class ReferenceModelSet:
         time constants: the features as they are."""
         out = {k: np.atleast_1d(np.asarray(v, dtype=float)) for k, v in data.items()}
         if self.vgt_tau > 0 and "vgt" in out and "vgt_rate" in out:
-            out["vgt"] = np.clip(out["vgt"] - self.vgt_tau * out["vgt_rate"], 0.0, 1.0)
+            out["vgt"] = vgt_position(out["vgt"], out["vgt_rate"], self.vgt_tau)
         tau = self.t2_tau
         if tau <= 0.0:
             return out
@@ -694,8 +694,9 @@ def identify_t2_tau(data: Mapping[str, np.ndarray], config: IdentificationConfig
     rate = np.abs(np.asarray(data["T2_rate"], dtype=float))
     step = max(1, n_rows // 20000)   # every step-th settled segment for the map
 
-    def columns(tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        d = compensate_t2(data, tau)
+    def columns(tau: float, rows: Mapping[str, np.ndarray] = data
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        d = compensate_t2(rows, tau)
         X = np.column_stack([d[k] for k in INPUTS])
         y = d["eta_v"]
         return X, y, np.all(np.isfinite(X), axis=1) & np.isfinite(y)
@@ -708,6 +709,7 @@ def identify_t2_tau(data: Mapping[str, np.ndarray], config: IdentificationConfig
     if moving.size < 50:
         return 0.0
     A = np.column_stack([x[moving], np.ones(moving.size)])
+    at_moving = {k: np.asarray(v)[moving] for k, v in data.items()}   # the search's rows
     tau = 0.0
     for _ in range(2):
         X, y, ok = columns(tau)
@@ -716,8 +718,8 @@ def identify_t2_tau(data: Mapping[str, np.ndarray], config: IdentificationConfig
         m.fit(X[fit], y[fit])
 
         def rmse(t: float, m=m) -> float:
-            Xt, yt, _ = columns(t)
-            e = yt[moving] - m.predict(Xt[moving])
+            Xt, yt, _ = columns(t, at_moving)
+            e = yt - m.predict(Xt)
             coef, *_ = np.linalg.lstsq(A, e, rcond=None)
             return float(np.sqrt(np.mean((e - A @ coef) ** 2)))
 
@@ -761,23 +763,30 @@ def identify_regime_models(data: Mapping[str, np.ndarray], *,
                          "closed and the flaps open: too few to identify the base regime")
     rows = {k: {c: np.asarray(v)[m] for c, v in data.items()} for k, m in sel.items()}
     tau = 0.0
+    every = rows   # every segment of each regime (the VGT's lag shows in T2 transients too)
     if "T2_rate" in data:
         # the sensor's lag shows in the temperature transients (the EGR valve opening and
         # closing in the ECU's passes among them): identified on all of the base regime's
         # segments, the maps then on those whose temperature has settled (as on line)
         tau = identify_t2_tau(rows[base_name], cfg)
         log(f"[identify] T2 sensor time constant {tau:.2f} s")
-        rows = {k: compensate_t2(v, tau) for k, v in rows.items()}
-    every = rows   # every segment of each regime (the VGT's lag shows in T2 transients too)
-    if "T2_rate" in data:
+        every = {k: compensate_t2(v, tau) for k, v in rows.items()}
         rows = {k: {c: v[np.abs(d["T2_rate"]) <= TEMPERATURE_SETTLED] for c, v in d.items()}
-                for k, d in rows.items()}
+                for k, d in every.items()}
     res = identify_reference_models(rows[base_name], config=cfg, progress=progress)
     base = res.models
     base.info.update(regime=base_name, t2_tau=tau,
                      regime_nrmse_test={base_name: res.nrmse_test},
                      regime_segments={base_name: int(sel[base_name].sum())})
     coeff = float(base.info.get("storage_coeff", 0.0))
+
+    def stored_air_removed(d: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The regime's eta_V less the air stored in the boost volume (the base regime's
+        coefficient: the boost volume's physics does not change with the valve)."""
+        if "storage_x" in d:
+            d = {**d, "eta_v": d["eta_v"] - coeff * np.nan_to_num(d["storage_x"])}
+        return d
+
     flows: list[tuple[dict[str, np.ndarray], Any, tuple[str, ...]]] = []
     for name, _, closed in REGIMES[1:] if further_regimes else ():
         d = rows[name]
@@ -785,9 +794,7 @@ def identify_regime_models(data: Mapping[str, np.ndarray], *,
             continue
         # every other segment: neighbours 15 ms apart repeat each other, and six-input maps
         # cost several times the paper's two-input ones
-        d = {k: v[::REGIME_STRIDE] for k, v in d.items()}
-        if "storage_x" in d:
-            d["eta_v"] = d["eta_v"] - coeff * np.nan_to_num(d["storage_x"])
+        d = stored_air_removed({k: v[::REGIME_STRIDE] for k, v in d.items()})
         # the joint coverage over the operating point (n, rho2): a six-input grid is empty
         rcfg = dataclasses.replace(cfg, extra_inputs=OPEN_EGR_INPUTS, tables=False,
                                    storage_correction=False, coverage_inputs=2)
@@ -808,10 +815,7 @@ def identify_regime_models(data: Mapping[str, np.ndarray], *,
             # (held-out NRMSE 0.2-0.6 on a drive they were not identified on, README):
             # this regime is judged on eta_V alone
             r.models.info["judged_outputs"] = ["eta_v"]
-            e = dict(every[name])
-            if "storage_x" in e:
-                e["eta_v"] = e["eta_v"] - coeff * np.nan_to_num(e["storage_x"])
-            flows.append((e, flow[0], r.models.inputs))
+            flows.append((stored_air_removed(every[name]), flow[0], r.models.inputs))
         base.regimes.append(r.models)
         base.info["regime_nrmse_test"][name] = r.nrmse_test
         base.info["regime_segments"][name] = int(d["n"].size)
@@ -821,6 +825,12 @@ def identify_regime_models(data: Mapping[str, np.ndarray], *,
         base.info["vgt_tau"] = identify_vgt_tau(flows)
         log(f"[identify] VGT vanes' time constant {base.info['vgt_tau']:.3f} s")
     return res
+
+
+def vgt_position(cmd: np.ndarray, rate: np.ndarray, tau: float) -> np.ndarray:
+    """The VGT vanes' position estimated from their command and its rate: a first-order lag
+    of time constant ``tau`` undone, ``cmd - tau d(cmd)/dt``, within 0..1."""
+    return np.clip(cmd - tau * rate, 0.0, 1.0)
 
 
 # Search bounds [s] of the VGT vanes' lag behind their command, and the command's rate [1/s]
@@ -858,7 +868,7 @@ def identify_vgt_tau(parts: Sequence[tuple[Mapping[str, np.ndarray], Any, tuple[
         err = []
         for X, rate, y, model, j in sets:
             Xt = X.copy()
-            Xt[:, j] = np.clip(X[:, j] - tau * rate, 0.0, 1.0)
+            Xt[:, j] = vgt_position(X[:, j], rate, tau)
             e = y - model.predict(Xt)
             err.append(e[np.isfinite(e) & model.in_region(Xt)])
         return float(np.sqrt(np.mean(np.concatenate(err) ** 2)))

@@ -165,6 +165,10 @@ class DiscrepancyResult:
     # the first step's leading explanations scored on every residual at once (their
     # mse_blocks: the joint held-out score), when other residuals checked them
     joint: list[Candidate] = field(default_factory=list, repr=False)
+    # with no significant finding: the best explanation over every residual (significant
+    # False, parameters fitted on every valid sample, its ties), when one gained
+    # SUSPECT_GAIN_PCT held-out
+    suspect: Finding | None = None
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = _jsonable({
@@ -172,6 +176,7 @@ class DiscrepancyResult:
             "message": self.message,
             "success": self.success,
             "findings": [f.to_dict() for f in self.findings],
+            "suspect": None if self.suspect is None else self.suspect.to_dict(),
             "candidates": [{k: v for k, v in asdict(c).items() if k != "mse_blocks"}
                            for c in self.candidates[:25]],
             "channels": self.channels,
@@ -437,10 +442,11 @@ def _time_varying(eff: Effect) -> bool:
     return eff.id == "drift" or bool(getattr(eff, "piecewise", False))
 
 
-def _verdict(findings: list[Finding], table: list[Candidate], alpha: float = 0.05
-             ) -> tuple[str, str]:
+def _verdict(findings: list[Finding], table: list[Candidate], alpha: float = 0.05,
+             suspect: Finding | None = None) -> tuple[str, str]:
     """Verdict and one-line message from the findings and the candidate table (``alpha``: the
-    significance level, to tell a candidate dropped as too small from an inconsistent one)."""
+    significance level, to tell a candidate dropped as too small from an inconsistent one;
+    ``suspect``: the best explanation over every residual when nothing is significant)."""
     if findings:
         top = findings[0]
         return "discrepant", (f"{len(findings)} significant finding(s); top: {top.label} on "
@@ -454,7 +460,20 @@ def _verdict(findings: list[Finding], table: list[Candidate], alpha: float = 0.0
                "effect outside the catalogue, e.g. intermittent, is possible")
         msg += (f" (the best candidate, {c.label} on {c.channel}, gains {c.gain_pct:.0f} % "
                 f"held-out, p_adj {c.p_adjusted:.2g}, but {why})")
+        if suspect is not None and c.p_adjusted >= alpha:
+            ties = ", ".join(f"{a['label']} on {a['channel']}"
+                             for a in suspect.alternatives[:3])
+            msg += (f"; over every residual the suspect is {suspect.label} on "
+                    f"{suspect.channel} ({_brief(suspect.params)}), not significant"
+                    + (f"; tied: {ties}" if ties else ""))
     return "consistent", msg
+
+
+def _brief(params: dict[str, Any]) -> str:
+    """The scalar parameters of a fitted explanation, briefly (``gain 0.925, onset_s 125.1``)."""
+    out = [f"{k} {v:.4g}" for k, v in params.items()
+           if isinstance(v, (int, float)) and not isinstance(v, bool)]
+    return ", ".join(out[:4]) or "no scalar parameters"
 
 
 def _n_blocks(ctx: ChannelContext, cfg: DiscrepancyConfig, info: dict[str, Any]) -> int | None:
@@ -813,10 +832,44 @@ def _contenders(scored: list[tuple[Hypothesis, Candidate]], choice: Candidate,
     return out
 
 
+def _finding(h: Hypothesis, choice: Candidate, step: int, alternatives: list[dict[str, Any]],
+             *, significant: bool = True, params: dict[str, Any] | None = None) -> Finding:
+    """The record of an explanation chosen at greedy ``step`` (0-based)."""
+    return Finding(rank=0, effect=choice.effect, label=choice.label, channel=choice.channel,
+                   model_channel=h.primary, params=params or {},
+                   rmse_before=choice.rmse_before, rmse_after=choice.rmse_after,
+                   gain_pct=choice.gain_pct, p_value=choice.p_value,
+                   p_adjusted=choice.p_adjusted, p_dm=choice.p_dm, significant=significant,
+                   n_params=choice.n_params, step=step + 1, alternatives=alternatives,
+                   residuals=choice.residuals, shown_on=choice.shown_on,
+                   input_sensor=isinstance(_lead(h), SensorError))
+
+
+def _judged_jointly(views: dict[str, _Channel], scored: list[tuple[Hypothesis, Candidate]],
+                    choice: Candidate, before: float, st: _Step, sc: _Scoring,
+                    cfg: DiscrepancyConfig, n_eff: float
+                    ) -> tuple[Hypothesis, Candidate, list[tuple[Hypothesis, Candidate]], float]:
+    """The primary residuals' choice and its contenders scored over every residual at once
+    (checks included): the explanation chosen there, the contenders' joint records and the
+    current model's joint score. Two stages: the primary residuals say that something is
+    wrong (the detection's p-value, carried by every contender), all residuals together say
+    what (``before``: the current model's mean score on the primary residuals)."""
+    cont = _contenders(scored, choice, before, cfg.alpha)
+    _score_all(views, [hh for hh, _ in cont], st, set(views), sc)
+    level = _noise_levels(views, st, sc, [hh for hh, _ in cont])
+    every = _joint_blocks(views, {v: st.mse_b[v] for v in views}, level)
+    detect = choice.p_adjusted
+    ties_from = [(hh, replace(_candidate(views, hh, st, sc, level, every),
+                              p_adjusted=detect)) for hh, _ in cont]
+    h, joint_choice = _one_se_choice(ties_from, cfg.alpha, n_eff)
+    return h, joint_choice, ties_from, float(np.nanmean(every))
+
+
 def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
                 progress: Callable[[str], None] | None, findings: list[Finding],
                 table: list[Candidate], oof: dict[str, dict[str, np.ndarray]],
-                joint: list[Candidate]) -> tuple[list[Hypothesis], int]:
+                joint: list[Candidate], suspect: list[Finding]
+                ) -> tuple[list[Hypothesis], int]:
     """Add the significant explanations, best first, to the model of every residual they
     move; returns the chain and the number of steps taken."""
     primary = {v: c.ctx for v, c in views.items() if not c.secondary}
@@ -862,58 +915,54 @@ def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
         h, choice = _one_se_choice(pool or scored, cfg.alpha, n_eff)
         sig = choice.p_adjusted < cfg.alpha and choice.gain_pct >= cfg.min_gain_pct
         ties_from = scored
-        if sig and second and _relevant(views, chain, h):
+        if second and (sig and _relevant(views, chain, h)
+                       or not sig and step == 0 and choice.gain_pct >= SUSPECT_GAIN_PCT):
             # the leading explanations are checked on the secondary residuals too: scored
-            # jointly over every residual, the one that explains all of them is named
-            cont = _contenders(scored, choice, base, cfg.alpha)
-            _score_all(views, [hh for hh, _ in cont], st, set(views), sc)
-            level = _noise_levels(views, st, sc, [hh for hh, _ in cont])
-            every = _joint_blocks(views, {v: st.mse_b[v] for v in views}, level)
-            base = float(np.nanmean(every))
-            # two stages: the primary residuals say that something is wrong (the detection's
-            # p-value, carried by every contender), all residuals together say what
-            detect = choice.p_adjusted
-            ties_from = [(hh, replace(_candidate(views, hh, st, sc, level, every),
-                                      p_adjusted=detect)) for hh, _ in cont]
-            h, choice = _one_se_choice(ties_from, cfg.alpha, n_eff)
+            # jointly over every residual, the one that explains all of them is named (and,
+            # when nothing is significant, reported as the suspect)
+            h, choice, ties_from, base = _judged_jointly(views, scored, choice, base, st, sc,
+                                                         cfg, n_eff)
             if step == 0:
                 joint.extend(c for _, c in ties_from)
         if progress and sig and second:
-            def per_residual(hh: Hypothesis) -> str:
-                ma = sc.mse_a[id(hh)]
-                return "/".join(f"{np.nanmean(ma.get(v, st.mse_b[v])) / level[v]:.3g}"
-                                for v in views)
+            def per_residual(c: Candidate) -> str:
+                return "/".join(f"{c.per_residual.get(v, np.nan):.3g}" for v in views)
             progress(f"step {step + 1}: leading explanations, held-out score (every residual in "
                      f"units of its noise level; {'/'.join(views)}): " + ", ".join(
                          f"{c.label} on {c.channel} {np.nanmean(c.mse_blocks):.4g} "
-                         f"({per_residual(hh)})"
-                         for hh, c in sorted(ties_from, key=lambda hc: np.nanmean(
+                         f"({per_residual(c)})"
+                         for _, c in sorted(ties_from, key=lambda hc: np.nanmean(
                              hc[1].mse_blocks))[:6]))
         if progress:
             progress(f"step {step + 1}: best {choice.label} on {choice.channel} gain "
                      f"{choice.gain_pct:.1f}% p_adj {choice.p_adjusted:.2g}"
                      f"{' (significant)' if sig else ''}")
-        if not sig:
-            break
         alternatives = _alternatives(views, chain, ties_from, choice, h.primary, base,
-                                     cfg.alpha)
+                                     cfg.alpha) if sig or ties_from is not scored else []
+        if not sig:
+            if ties_from is not scored:
+                # nothing significant: the best explanation over every residual, fitted on
+                # every valid sample, is reported as the suspect (not a finding)
+                for c in views.values():
+                    c.ctx.cache.clear()
+                    c.ctx.folds, c.ctx.fold_ids = None, {}
+                params = _fit_in(views, h, {v: c.ctx.yhat for v, c in views.items()},
+                                 {v: c.ok for v, c in views.items()}, refine=True)[0]
+                suspect.append(_finding(h, choice, step, alternatives, significant=False,
+                                        params=params))
+            break
         chain.append(h)
         for v, a in sc.after[id(h)].items():
             if v in primary:
                 oof.setdefault(v, {})[f"after_{step + 1}"] = a
-        findings.append(Finding(rank=0, effect=choice.effect, label=choice.label,
-                                channel=choice.channel, model_channel=h.primary, params={},
-                                rmse_before=choice.rmse_before,
-                                rmse_after=choice.rmse_after, gain_pct=choice.gain_pct,
-                                p_value=choice.p_value, p_adjusted=choice.p_adjusted,
-                                p_dm=choice.p_dm, significant=True,
-                                n_params=choice.n_params, step=step + 1,
-                                alternatives=alternatives, residuals=choice.residuals,
-                                shown_on=choice.shown_on,
-                                input_sensor=isinstance(_lead(h), SensorError)))
+        findings.append(_finding(h, choice, step, alternatives))
     return chain, nit
 
 
+# Held-out gain [%] from which the best explanation of a record with no significant finding
+# is judged on every residual and reported as the suspect (with its parameters and ties): a
+# user reads "consistent" together with what, if anything, came closest
+SUSPECT_GAIN_PCT = 10.0
 MIN_GAIN_EFFECT = 0.01  # relevance floor of a gain error: |gain - 1| [1]
 MIN_EFFECT_REL = 0.01  # relevance floor of any effect: its error / RMS of the reading
 # ... and of an input sensor's error, also what it moves the channel's prediction by / RMS of
@@ -1037,8 +1086,8 @@ def _refit(views: dict[str, _Channel], chain: list[Hypothesis], findings: list[F
 
 
 def _conclude(findings: list[Finding], table: list[Candidate],
-              summary: dict[str, dict[str, Any]], alpha: float = 0.05
-              ) -> tuple[list[Finding], str, str, bool]:
+              summary: dict[str, dict[str, Any]], alpha: float = 0.05,
+              suspect: Finding | None = None) -> tuple[list[Finding], str, str, bool]:
     """Findings ranked, the verdict and its message, and whether any channel was analysed.
 
     The findings keep the order they were chosen in: each step's explanation was the best
@@ -1046,7 +1095,7 @@ def _conclude(findings: list[Finding], table: list[Candidate],
     held-out gain is of that remainder, not comparable with the first's)."""
     findings = [replace(f, rank=i + 1) for i, f in enumerate(findings)]
     table.sort(key=lambda c: -c.gain_pct)
-    verdict, msg = _verdict(findings, table, alpha)
+    verdict, msg = _verdict(findings, table, alpha, suspect)
     skipped = {ch: c["status"] for ch, c in summary.items() if "status" in c}
     success = len(skipped) < len(summary)
     if not success:
@@ -1134,19 +1183,21 @@ def analyse(contexts: dict[str, ChannelContext], *, config: DiscrepancyConfig | 
     chains: dict[str, list[tuple[Effect, dict[str, Any]]]] = {ch: [] for ch in contexts}
     nit = 0
     joint: list[Candidate] = []
+    suspect: list[Finding] = []
     if any(not c.secondary for c in views.values()):
-        chain, nit = _grow_chain(views, cfg, progress, findings, table, oof, joint)
+        chain, nit = _grow_chain(views, cfg, progress, findings, table, oof, joint, suspect)
         chains.update({v: ch for v, ch in _refit(views, chain, findings, summary).items()
                        if v in contexts})
     findings, verdict, msg, success = _conclude(findings, table,
                                                 {k: v for k, v in summary.items()
-                                                 if k in contexts}, cfg.alpha)
+                                                 if k in contexts}, cfg.alpha,
+                                                suspect[0] if suspect else None)
     return DiscrepancyResult(findings=findings, candidates=table, verdict=verdict, message=msg,
                              success=success, channels=summary, chains=chains,
                              n_blocks=max([c.get("n_blocks", 0) for c in summary.values()]
                                           or [0]), nit=nit,
                              seconds=time.perf_counter() - t0, config=cfg, oof=oof,
-                             joint=joint)
+                             joint=joint, suspect=suspect[0] if suspect else None)
 
 
 def merge_results(a: DiscrepancyResult, b: DiscrepancyResult, *, b_suffix: str,
@@ -1170,7 +1221,8 @@ def merge_results(a: DiscrepancyResult, b: DiscrepancyResult, *, b_suffix: str,
     else:
         channels.update({f"{ch} (crank-resolved)": v for ch, v in a.channels.items()})
     cands = sorted(a.candidates + b.candidates, key=lambda c: -c.gain_pct)
-    verdict, msg = _verdict(findings, cands, a.config.alpha)
+    suspect = a.suspect or b.suspect
+    verdict, msg = _verdict(findings, cands, a.config.alpha, suspect)
     if not (a.success and b.success):
         verdict = "invalid"
         msg = "; ".join(r.message for r in (a, b) if not r.success)
@@ -1178,4 +1230,5 @@ def merge_results(a: DiscrepancyResult, b: DiscrepancyResult, *, b_suffix: str,
                              success=a.success and b.success, channels=channels,
                              chains=chains, n_blocks=max(a.n_blocks, b.n_blocks),
                              nit=a.nit + b.nit, seconds=a.seconds + b.seconds,
-                             config=a.config, oof=a.oof, joint=a.joint + b.joint)
+                             config=a.config, oof=a.oof, joint=a.joint + b.joint,
+                             suspect=None if findings else suspect)

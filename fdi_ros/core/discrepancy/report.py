@@ -295,6 +295,16 @@ def write_report(out_dir: str | Path, data: Measured, baseline: Any, extended: E
                      f"{f.p_adjusted:.2g} |")
     if not result.findings:
         lines.append("| - | none significant | | | | | | |")
+    sus = result.suspect
+    if sus is not None:
+        lines.append(f"\nNot significant, but the best explanation over every residual: "
+                     f"**{sus.label}** on {sus.channel} ({_fmt_params(sus.params)}), held-out "
+                     f"gain {sus.gain_pct:.1f} % on {sus.shown_on}, p (adj.) "
+                     f"{sus.p_adjusted:.2g}; moves {', '.join(sus.residuals)}. The data cannot "
+                     "tell it from: " + ("; ".join(f"{a['label']} on {a['channel']} "
+                                                   f"({_fmt_params(a['params'])})"
+                                                   for a in sus.alternatives) or "none")
+                     + ". More data after the change, or where it acts most, would decide.")
     for f in result.findings:
         for a in f.alternatives:
             if "separate_by" in a:  # a tie with another sensor: why, and what separates

@@ -80,40 +80,55 @@ def test_bad_config_clear_error(tmp_path: Path, text: str, msg: str):
 
 
 class _Sym:
-    """A symptom stage reporting s_1 = "-" from t = 1 s on, in ``regime`` (whose residuals
-    are all judged unless ``partial``)."""
+    """A symptom stage reporting ``levels`` of (s_1, s_2) from t = 1 s on (s_1 = "-" by
+    default), in ``regime`` (whose residuals are all judged unless ``partial``: then s_1
+    only)."""
 
-    def __init__(self, regime: str = "", partial: bool = False) -> None:
+    def __init__(self, regime: str = "", partial: bool = False,
+                 levels: tuple[int, ...] = (-1,)) -> None:
         from types import SimpleNamespace
 
-        self.regime = regime
-        self.config = SimpleNamespace(judges_all=lambda r: not (partial and r == regime))
+        self.regime, self.levels = regime, levels
+        names = ("r_1", "r_2")[:len(levels)]
+        self.config = SimpleNamespace(
+            names=names, judges_all=lambda r: not (partial and r == regime),
+            judged=lambda r: (True,) + (False,) * (len(names) - 1)
+            if partial and r == regime else (True,) * len(names))
 
     def update(self, rv):
         from types import SimpleNamespace
-        lv = (-1,) if rv.t >= 1.0 else (0,)
+        lv = self.levels if rv.t >= 1.0 else (0,) * len(self.levels)
         return SimpleNamespace(valid=True, levels=lv, in_order=lambda columns: lv,
-                               regime=self.regime)
+                               regime=self.regime,
+                               by_name=lambda: dict(zip(("s_1", "s_2"), lv)))
 
 
-def test_no_candidates_where_the_regime_judges_some_residuals_only(tmp_path):
+def test_partial_signatures_isolate_only_a_fault_alone_in_its_sign(tmp_path):
     """A symptom in a regime that judges some residuals only (the diesel's EGR valve open):
-    the fault-symptom table's signatures span every residual and cannot be matched there, so
-    the diagnosis is "detected" with no candidate instead of a wrong one."""
+    the table is compared on the judged symptoms, in sign; a fault alone in that sign is the
+    candidate, several are none ("detected", not a wrong isolation among look-alikes); with
+    every residual judged the full signature decides."""
     cfg_file = tmp_path / "config" / "g.yaml"
     cfg_file.parent.mkdir()
     cfg_file.write_text(CONFIG)
-    for partial, want in ((False, ("a",)), (True, ())):
+    table = FaultSymptomTable(("s_1", "s_2"), {"a": (-1, 1), "b": (2, 0), "c": (-1, -1)})
+    cases = (((-1, 1), False, ("a",)),    # full signature: a
+             ((-1, 1), True, ()),         # s_1 "-" judged only: a or c, no candidate
+             ((1, -1), True, ("b",)),     # s_1 "+" (the table's "++" in sign): b alone
+             ((0, 1), True, ()))          # nothing judged shows: no symptom there
+    for levels, partial, want in cases:
         diag = Diagnoser(load_graph_config(cfg_file))
-        diag.table = FaultSymptomTable(("s_1",), {"a": (-1,), "b": (1,)})
+        diag.table = table
         diag.reference_id = "nominal"
-        diag.symptom_gen = _Sym("open", partial)
+        diag.symptom_gen = _Sym("open", partial, levels)
         for k in range(15):
             t = 0.1 * k
             res = {m: ResidualVector(m, 0, t, True, "", ("r",), ("1",), np.array([3.0]), 3.0)
                    for m in ("nominal", "a", "b")}
             d = diag.update(k, t, res).diagnosis
-        assert d.state == "detected" and d.candidate_faults == want, (partial, d)
+        assert d.candidate_faults == want, (levels, partial, d)
+        if levels[0] or not partial:
+            assert d.state == "detected", (levels, partial, d)
 
 
 def test_judged_fault_free_is_no_fault_without_valid_hypotheses(tmp_path):

@@ -9,7 +9,7 @@ import os
 import numpy as np
 import pytest
 
-from fdi_ros.core.fst import FaultSymptomTable, isolate
+from fdi_ros.core.fst import FaultSymptomTable, isolate, isolate_in_sign
 
 TABLE = FaultSymptomTable(("s1", "s2", "s3"), {
     "leak": (-1, 0, 0), "egr": (2, -1, -1), "vent": (1, 0, 0), "restr": (0, -1, 1)})
@@ -112,3 +112,25 @@ def test_random_tables_match_the_definition_and_the_previous_rule():
             assert got == _by_definition(obs, table, mm, opposite, keep), (seed, table, obs)
         assert isolate(obs, table, max_mismatch=mm, opposite="exclude", keep="all") == \
             _previous_diagnoser_rule(obs, table, mm), (seed, table, obs, mm)
+
+
+def test_partial_signatures_match_in_sign_on_the_judged_symptoms_only():
+    """A regime that judges some symptoms: the table compared there, in sign; a random table
+    and observation against the definition (seeded at test time)."""
+    assert isolate_in_sign({"s1": -1}, TABLE, ["s1"]) == ["leak"]
+    assert isolate_in_sign({"s1": 1}, TABLE, ["s1"]) == ["egr", "vent"]   # + == ++
+    assert isolate_in_sign({"s1": 2, "s2": -1}, TABLE, ["s1"]) == ["egr", "vent"]  # s2 unjudged
+    assert isolate_in_sign({"s2": -1}, TABLE, ["s1"]) == []       # no judged symptom
+    assert isolate_in_sign({"s1": 0, "s2": -1}, TABLE, ["s1", "s2"]) == ["restr"]
+    seed = int(os.environ.get("FST_SEED", np.random.SeedSequence().entropy % 2**32))
+    rng = np.random.default_rng(seed)
+    names = ("s1", "s2", "s3", "s4")
+    for _ in range(300):
+        table = FaultSymptomTable(names, {f"f{i}": tuple(int(v) for v in rng.choice(
+            [-1, 0, 1, 2], 4)) for i in range(int(rng.integers(1, 7)))})
+        judged = [c for c in names if rng.random() < 0.5] or ["s1"]
+        obs = {c: int(rng.choice([-1, 0, 1, 2])) for c in names}
+        want = [f for f, row in table.items()
+                if all(np.sign(row[names.index(c)]) == np.sign(obs[c]) for c in judged)] \
+            if any(obs[c] for c in judged) else []
+        assert isolate_in_sign(obs, table, judged) == want, (seed, table, obs, judged)

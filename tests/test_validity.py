@@ -137,6 +137,33 @@ def test_fault_free_with_egr_open_or_swirl_closed_gives_no_symptom_no_isolation(
                 or "swirl_cmd" in last.status or "balanced" in last.status, (where, last)
 
 
+def test_hypotheses_effect_maps_with_the_egr_valve_open_have_the_physics_sign(diesel_bank):
+    """The fault hypotheses carry effect maps of the EGR-open regimes (eta_V judged there
+    only): over operating points drawn at random in each regime's part of the map, a leak
+    behind the compressor reads as more fresh air (r_eta down), an open crank-case vent and
+    a leaky EGR valve as less (up); the residuals not judged there get no effect."""
+    import random
+
+    from fdi_ros.core.graphconfig import load_graph_config
+    from fdi_ros.core.residual_models import load_residual_model
+
+    cfg = load_graph_config(diesel_bank)
+    seed = random.randrange(2**32)
+    print(f"seed {seed}")
+    rng = np.random.default_rng(seed)
+    boxes = {"egr_open_flaps_open": [(2200, 3000), (1.1, 1.5), (5, 20), (0.2, 0.6)],
+             "egr_open_flaps_closed": [(1100, 1900), (0.95, 1.4), (3, 20), (0.3, 0.6)]}
+    sign = {"leak_ic_engine": -1, "crankcase_vent_open": 1, "egr_leaky": 1}
+    for fault, want in sign.items():
+        h = load_residual_model(cfg.resolve_spec(cfg.entry(fault).model), model_id=fault)
+        for regime, box in boxes.items():
+            assert h.covers(regime) and not h.covers(regime + "/transient")
+            X = np.column_stack([rng.uniform(a, b, 200) for a, b in box])
+            G = h.direction(X, regime)
+            assert np.sign(np.median(G[:, 0])) == want, (fault, regime, np.median(G[:, 0]))
+            assert not G[:, 1:].any(), (fault, regime)
+
+
 def test_a_tip_in_that_closes_the_egr_valve_is_no_leak(diesel_bank):
     """The ECU closes the EGR valve when the driver asks for full load: the segments after it
     are "not valid" while the boost temperature falls fast, then "transient" (judged by the

@@ -12,12 +12,26 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
+from typing import Any
 
-from fdi_ros.core.fst import FaultSymptomTable, isolate, load_fault_symptom_tables
+import numpy as np
+
+from fdi_ros.core.fst import (
+    FaultSymptomTable,
+    isolate,
+    isolate_in_sign,
+    load_fault_symptom_tables,
+)
 from fdi_ros.core.graphconfig import GraphConfig
 from fdi_ros.core.residual_models import ResidualModel, load_residual_model
-from fdi_ros.core.supervisor import ExpertSupervisor
-from fdi_ros.core.symptoms import SymptomConfig, SymptomGenerator, SymptomState, load_thresholds
+from fdi_ros.core.supervisor import ExpertSupervisor, fault_type
+from fdi_ros.core.symptoms import (
+    SymptomConfig,
+    SymptomGenerator,
+    SymptomState,
+    load_thresholds,
+    symptom_name,
+)
 from fdi_ros.core.types import Diagnosis, FeatureVector, ResidualVector
 
 
@@ -73,6 +87,7 @@ class Diagnoser:
         self.max_mismatch = int(sym.get("max_mismatch", 1))
         self.explain_norm = float(sym.get("explain_norm", math.inf))
         self._candidates: dict[tuple[int, ...], tuple[str, ...]] = {}
+        self._partial: dict[tuple[Any, ...], tuple[str, ...]] = {}
 
     @property
     def models_online(self) -> tuple[str, ...]:
@@ -88,6 +103,26 @@ class Diagnoser:
         order). The live node calls this as soon as the reference residual arrives, so the
         symptom is published without waiting for the rest of the bank."""
         return self.symptom_gen.update(ref) if self.symptom_gen is not None else None
+
+    def _partial_candidates(self, symptoms: SymptomState) -> tuple[str, ...]:
+        """The fault a regime that judges some residuals only can isolate: the signatures
+        compared on the judged symptoms, in sign (the table's intensities hold where it was
+        measured), and a candidate only if exactly one fault type matches: with fewer
+        symptoms several faults look alike, and the bank's hypotheses, fitted to one or two
+        residuals, would then compete on noise (detected there, no isolation)."""
+        if self.symptom_gen is None or self.table is None:
+            return ()
+        cfg = self.symptom_gen.config
+        names = tuple(symptom_name(r) for r, j in zip(cfg.names, cfg.judged(symptoms.regime))
+                      if j)
+        by_name = symptoms.by_name()
+        key = (symptoms.regime, *(int(np.sign(by_name.get(k, 0))) for k in names))
+        hit = self._partial.get(key)
+        if hit is None:
+            match = isolate_in_sign(by_name, self.table, names)
+            hit = self._partial[key] = tuple(match) if len(
+                {fault_type(f) for f in match}) == 1 else ()
+        return hit
 
     def update(self, index: int, t: float, residuals: Mapping[str, ResidualVector], *,
                symptoms: SymptomState | None = None) -> Step:
@@ -108,9 +143,9 @@ class Diagnoser:
                 feed = {}
             active = symptoms is not None and symptoms.valid and any(symptoms.levels)
             if symptoms is not None and active and self.table is not None and \
-                    self.symptom_gen.config.judges_all(symptoms.regime):
-                # (a regime that judges some residuals only has no signatures to match:
-                # detected there, no candidates)
+                    not self.symptom_gen.config.judges_all(symptoms.regime):
+                candidates = self._partial_candidates(symptoms)
+            elif symptoms is not None and active and self.table is not None:
                 cols = self.table.columns
                 observed = symptoms.in_order(cols) if cols else tuple(symptoms.levels)
                 # The faults the symptoms do not contradict: a fault outside this list

@@ -108,6 +108,20 @@ def isolate(symptom_levels: Sequence[int] | Mapping[str, int],
     return [f for f, d in dist.items() if d == best] if best <= max_mismatch else []
 
 
+def isolate_in_sign(symptom_levels: Mapping[str, int], table: FaultSymptomTable,
+                    columns: Sequence[str]) -> list[str]:
+    """Faults whose signatures have the observed signs on ``columns`` (symptom names; the
+    others are not judged): the matcher of a partial signature, where the table's
+    intensities, measured with every symptom judged, do not carry over. No symptom among
+    ``columns`` -> no candidate."""
+    cols = [c for c in columns if c in table.columns]
+    obs = [int(np.sign(symptom_levels.get(c, 0))) for c in cols]
+    if not any(obs):
+        return []
+    at = [table.columns.index(c) for c in cols]
+    return [f for f, row in table.items() if [int(np.sign(row[j])) for j in at] == obs]
+
+
 def parse_signature(sig: str | Sequence[str | int], n: int) -> tuple[int, ...]:
     """``"+,o,-"`` (or a list of codes / integers) -> levels; ``n`` symptoms expected."""
     if isinstance(sig, str):

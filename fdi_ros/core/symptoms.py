@@ -44,6 +44,15 @@ def rate_status(values: Mapping[str, float], limits: Mapping[str, float],
     return f"not valid here: {kind} ({what})"
 
 
+def effect_values(g: np.ndarray, thr: np.ndarray) -> np.ndarray:
+    """An effect ``g`` in units of the symptom thresholds back in the residuals' units; 0
+    where a residual is not judged (an infinite threshold, and no effect estimated there)."""
+    g, thr = np.asarray(g, dtype=float), np.asarray(thr, dtype=float)
+    out = np.zeros(np.broadcast_shapes(g.shape, thr.shape))
+    np.multiply(g, thr, out=out, where=g != 0.0)
+    return out
+
+
 def symptom_name(residual: str) -> str:
     """``r_x`` -> ``s_x`` (other names: ``s_`` prefixed)."""
     return "s_" + residual.removeprefix("r_")
@@ -200,6 +209,11 @@ class SymptomConfig:
     def knows(self, regime: str) -> bool:
         """Whether the file holds statistics for ``regime`` ("" and the base regime: yes)."""
         return regime in ("", self.base_regime) or regime in self.regimes
+
+    def judged(self, regime: str = "") -> tuple[bool, ...]:
+        """Per residual, whether ``regime`` judges it (all, unless the regime says)."""
+        flags = self.regimes.get(regime, {}).get("judged")
+        return tuple(bool(j) for j in flags) if flags else (True,) * len(self.names)
 
     def judges_all(self, regime: str = "") -> bool:
         """Whether every residual is judged in ``regime`` (a fault-symptom table's signatures

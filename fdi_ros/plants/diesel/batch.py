@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from fdi_ros.core.sliding import window_ranges, window_reduce
-from fdi_ros.core.symptoms import TOO_FAST, TRANSIENT_SUFFIX, rate_status
+from fdi_ros.core.symptoms import TOO_FAST, TRANSIENT_SUFFIX, effect_values, rate_status
 from fdi_ros.core.types import FeatureVector, ResidualVector
 from fdi_ros.plants.diesel.ecu import (
     ACTUATOR_MOVE,
@@ -381,23 +381,27 @@ class BatchedModel:
                 status[i] = (f"not valid here: the {h.fault} effect maps are not identified "
                              f"in regime {regime[i]!r}")
         rows = np.flatnonzero(valid)
-        cols = [self.stream.col(k) for k in h.inputs]
-        missing = [name for name, (_, have) in zip(h.inputs, cols) if not have[k0:][rows].all()]
         G = np.full((rows.size, len(cfg.names)), np.nan)
-        if missing:   # rare: ask the features one by one for the step-wise message
-            keep = []
-            for r, i in enumerate(rows):
-                try:
-                    [self.stream.feats[k0 + i].get(k) for k in h.inputs]
-                    keep.append(r)
-                except KeyError as exc:
-                    valid[i], status[i] = False, f"feature missing: {exc}"
-            keep_a = np.asarray(keep, dtype=np.intp)
-        else:
-            keep_a = np.arange(rows.size)
-        if keep_a.size:
-            X = np.column_stack([c[0][k0:][rows[keep_a]] for c in cols])
-            G[keep_a] = h.direction(X)
+        reg = np.array(regime, dtype=object)[rows] if rows.size else np.array([], dtype=object)
+        for name in set(reg.tolist()):
+            # each regime's effect maps over their own inputs
+            sub = rows[reg == name]
+            inputs = h.inputs_for(name)
+            cols = [self.stream.col(k) for k in inputs]
+            if all(have[k0:][sub].all() for _, have in cols):
+                keep_a = np.arange(sub.size)
+            else:   # rare: ask the features one by one for the step-wise message
+                keep = []
+                for r, i in enumerate(sub):
+                    try:
+                        [self.stream.feats[k0 + i].get(k) for k in inputs]
+                        keep.append(r)
+                    except KeyError as exc:
+                        valid[i], status[i] = False, f"feature missing: {exc}"
+                keep_a = np.asarray(keep, dtype=np.intp)
+            if keep_a.size:
+                X = np.column_stack([c[0][k0:][sub[keep_a]] for c in cols])
+                G[np.searchsorted(rows, sub[keep_a])] = h.direction(X, name)
         fin = np.all(np.isfinite(G), axis=1)
         for bad in rows[~fin]:
             if valid[bad]:
@@ -409,7 +413,7 @@ class BatchedModel:
             Z = (R[rows] - C[rows]) / T[rows]
             s, rms = _window_norms(Z, G, window=h.window, min_effect=h.min_effect)
             norm[rows] = rms + h.penalty
-            values[rows] = R[rows] - s[:, None] * G * T[rows]
+            values[rows] = R[rows] - s[:, None] * effect_values(G, T[rows])
         return values, norm
 
 

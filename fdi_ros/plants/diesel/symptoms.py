@@ -43,6 +43,7 @@ from fdi_ros.core.symptoms import (
     SymptomConfig,
     SymptomGenerator,
     SymptomState,
+    effect_values,
     load_thresholds,
     rate_status,
 )
@@ -631,33 +632,43 @@ class FaultHypothesisResidualModel(_Batchable):
 
     ``regimes``: the operating regimes the effect maps were identified in (None: any); in
     another regime the model is "not valid here" (a fault's effect with the EGR valve open is
-    not the effect with it closed).
+    not the effect with it closed). ``regime_directions``: effect maps of further regimes
+    (regime -> residual -> map, over their own inputs), identified on faulty data of that
+    regime: a regime judged on some residuals only has maps of those (the others' effect is
+    not estimated there, their z is 0).
     """
 
     def __init__(self, *, models: ReferenceModelSet, config: SymptomConfig, fault: str,
                  directions: Mapping[str, Lolimot], model_id: str, window: int = 40,
                  penalty: float = DEFAULT_PENALTY, min_effect: float = 1.0,
-                 regimes: Sequence[str] | None = None) -> None:
+                 regimes: Sequence[str] | None = None,
+                 regime_directions: Mapping[str, Mapping[str, Lolimot]] | None = None
+                 ) -> None:
         if config is None:
             raise ValueError("a fault-hypothesis model needs the fault-free residual scales")
         if int(window) < 1:
             raise ValueError("window must be >= 1")
-        unknown = set(directions) - set(config.names)
+        further = {str(r): dict(d) for r, d in (regime_directions or {}).items()}
+        unknown = set(directions).union(*further.values()) - set(config.names)
         if unknown:
             raise ValueError(f"directions for unknown residuals {sorted(unknown)}")
+        if further and regimes is None:
+            raise ValueError("effect maps of further regimes need the base maps' regimes")
         self.models, self.config, self.fault = models, config, fault
         self.directions = dict(directions)
+        self.regime_directions = further
         self.model_id = model_id
         self.window = int(window)
         self.penalty = float(penalty)
         self.min_effect = float(min_effect)
-        self.regimes = None if regimes is None else tuple(str(r) for r in regimes)
+        self.regimes = None if regimes is None else tuple(str(r) for r in regimes) + tuple(
+            r for r in further if r not in regimes)
         self._buf = _Window(self.window)
         self._g: dict[tuple[int, float], np.ndarray] = {}  # g(x) of prefetched segments
         # the effect maps evaluated together (one pass per segment, not one per residual)
-        self._cols = [j for j, name in enumerate(config.names) if name in self.directions]
-        self._stack = LolimotStack([self.directions[config.names[j]] for j in self._cols]) \
-            if self._cols else None
+        self._maps = {r: _EffectMaps(d, config.names) for r, d in further.items()}
+        self._base = _EffectMaps(self.directions, config.names)
+        self._cols, self._stack = self._base.cols, self._base.stack
         self.size_estimate = 0.0
         self._qs = QuasiStationarity(config)
 
@@ -689,17 +700,18 @@ class FaultHypothesisResidualModel(_Batchable):
 
     @property
     def inputs(self) -> tuple[str, ...]:
-        """Feature names the effect maps take (e.g. ``("n", "rho2", "fuel")``)."""
-        first = next(iter(self.directions.values()), None)
-        return tuple(first.input_names) if first is not None else ()
+        """Feature names the base regime's effect maps take (e.g. ``("n", "rho2", "fuel")``)."""
+        return self._base.inputs
 
-    def direction(self, X) -> np.ndarray:
-        """g(x): normalised residual change per unit fault size at (N, p) inputs, (N, m)."""
-        X = np.atleast_2d(np.asarray(X, dtype=float))
-        G = np.zeros((X.shape[0], len(self.config.names)))
-        if self._stack is not None:
-            G[:, self._cols] = self._stack.predict(X)
-        return G
+    def inputs_for(self, regime: str) -> tuple[str, ...]:
+        """Feature names the effect maps of ``regime`` take."""
+        return self._maps[regime].inputs if regime in self._maps else self._base.inputs
+
+    def direction(self, X, regime: str | None = None) -> np.ndarray:
+        """g(x): normalised residual change per unit fault size at (N, p) inputs, (N, m), by
+        the maps of ``regime`` (default and any regime without maps of its own: the base
+        regime's)."""
+        return self._maps.get(regime or "", self._base).predict(X, len(self.config.names))
 
     def residuals(self, fv: FeatureVector) -> ResidualVector:
         rv = shared_residual_vector(self.models, fv, model_id=self.model_id)
@@ -711,8 +723,9 @@ class FaultHypothesisResidualModel(_Batchable):
             return self._elsewhere(rv)
         try:
             g = self._g.pop((fv.index, fv.t_end), None)
-            if g is None:
-                g = self.direction([[fv.get(k) for k in self.inputs]])[0]
+            if g is None or rv.regime in self._maps:
+                g = self.direction([[fv.get(k) for k in self.inputs_for(rv.regime)]],
+                                   rv.regime)[0]
         except KeyError as exc:
             return ResidualVector(**{**rv.__dict__, "valid": False,
                                      "status": f"feature missing: {exc}"})
@@ -732,7 +745,7 @@ class FaultHypothesisResidualModel(_Batchable):
         # beats the nominal model on fault-free data).
         explains = float(np.max(np.abs(s * (G.sum(axis=0) / G.shape[0])))) >= self.min_effect
         norm = block_rms(Z - s * G if explains else Z) + self.penalty
-        values = rv.values - s * g * self.config.statistics(rv.regime)[1]
+        values = rv.values - s * effect_values(g, self.config.statistics(rv.regime)[1])
         return ResidualVector(**{**rv.__dict__, "values": values, "norm": norm})
 
     def stream(self, features: Sequence[FeatureVector]) -> list[ResidualVector]:
@@ -746,14 +759,18 @@ class FaultHypothesisResidualModel(_Batchable):
         idx = [i for i, rv in enumerate(out) if rv.valid]
         if not idx:
             return out
-        try:
-            X = np.array([[feats[i].get(k) for k in self.inputs] for i in idx])
-        except KeyError as exc:
-            for i in idx:
-                out[i] = ResidualVector(**{**base[i].__dict__, "valid": False,
-                                           "status": f"feature missing: {exc}"})
-            return out
-        G = self.direction(X)
+        G = np.zeros((len(idx), len(self.config.names)))
+        for regime in {out[i].regime for i in idx}:
+            rows = [r for r, i in enumerate(idx) if out[i].regime == regime]
+            try:
+                X = np.array([[feats[idx[r]].get(k) for k in self.inputs_for(regime)]
+                              for r in rows])
+            except KeyError as exc:
+                for i in idx:
+                    out[i] = ResidualVector(**{**base[i].__dict__, "valid": False,
+                                               "status": f"feature missing: {exc}"})
+                return out
+            G[rows] = self.direction(X, regime)
         for row, i in enumerate(idx):
             if not np.all(np.isfinite(G[row])):
                 out[i] = ResidualVector(**{**base[i].__dict__, "valid": False,
@@ -769,10 +786,16 @@ class FaultHypothesisResidualModel(_Batchable):
         d.mkdir(parents=True, exist_ok=True)
         for name, m in self.directions.items():
             m.save(d / f"{name}.npz")
+        for regime, maps in self.regime_directions.items():
+            for name, m in maps.items():
+                m.save(d / _regime_file(regime, name))
+        base_regimes = None if self.regimes is None else [
+            r for r in self.regimes if r not in self.regime_directions]
         (d / "hypothesis.json").write_text(json.dumps(
             {"fault": self.fault, "directions": sorted(self.directions),
              "window": self.window, "penalty": self.penalty, "min_effect": self.min_effect,
-             "regimes": None if self.regimes is None else list(self.regimes)}))
+             "regimes": base_regimes,
+             "regime_directions": {r: sorted(m) for r, m in self.regime_directions.items()}}))
         return d
 
 
@@ -786,7 +809,31 @@ def load_directions(directory: str | Path) -> tuple[str, dict[str, Lolimot], dic
     if not meta_path.exists():
         raise FileNotFoundError(f"no fault hypothesis in {d} (missing hypothesis.json)")
     meta = json.loads(meta_path.read_text())
+    meta["regime_maps"] = {r: {k: Lolimot.load(d / _regime_file(r, k)) for k in names}
+                           for r, names in meta.get("regime_directions", {}).items()}
     return meta["fault"], {k: Lolimot.load(d / f"{k}.npz") for k in meta["directions"]}, meta
+
+
+def _regime_file(regime: str, name: str) -> str:
+    """The file of a further regime's effect map (``egr_open_flaps_open.r_eta.npz``)."""
+    return f"{regime.replace('/', '_')}.{name}.npz"
+
+
+class _EffectMaps:
+    """The effect maps of one regime evaluated together: residual columns, stack, inputs."""
+
+    def __init__(self, maps: Mapping[str, Lolimot], names: Sequence[str]) -> None:
+        self.cols = [j for j, name in enumerate(names) if name in maps]
+        self.stack = LolimotStack([maps[names[j]] for j in self.cols]) if self.cols else None
+        first = next(iter(maps.values()), None)
+        self.inputs = tuple(first.input_names) if first is not None else ()
+
+    def predict(self, X, m: int) -> np.ndarray:
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        G = np.zeros((X.shape[0], m))
+        if self.stack is not None:
+            G[:, self.cols] = self.stack.predict(X)
+        return G
 
 
 def identify_fault_hypothesis(models: ReferenceModelSet, config: SymptomConfig,
@@ -794,12 +841,15 @@ def identify_fault_hypothesis(models: ReferenceModelSet, config: SymptomConfig,
                               t_from: float, residual_names: Sequence[str] = RESIDUALS,
                               inputs: Sequence[str] = ("n", "rho2", "fuel"),
                               max_models: int = 8, model_id: str | None = None,
-                              window: int = 40, regimes: Sequence[str] | None = None
+                              window: int = 40, regimes: Sequence[str] | None = None,
+                              regime_features: Sequence[FeatureVector] | None = None
                               ) -> FaultHypothesisResidualModel:
     """Identify the effect map ``g(x)`` from feature vectors with the fault (of ``size``)
     present from plant time ``t_from`` on: LOLIMOT fits of the normalised nominal residuals
     divided by the size, over ``inputs`` (fuel matters: an EGR leak flow follows the exhaust
-    back pressure, i.e. the load, not only speed and boost density)."""
+    back pressure, i.e. the load, not only speed and boost density). ``regime_features``:
+    faulty data of the further regimes (the EGR-open passes), whose effect maps
+    :func:`identify_regime_directions` identifies."""
     from fdi_ros.core.lolimot import Lolimot
 
     if not size > 0:
@@ -821,9 +871,56 @@ def identify_fault_hypothesis(models: ReferenceModelSet, config: SymptomConfig,
         m = Lolimot(max_models=max_models, min_samples_per_model=50)
         m.fit(X, Z[:, j], input_names=tuple(inputs), output_name=f"g_{name}")
         directions[name] = m
+    further = identify_regime_directions(models, config, regime_features, size=size,
+                                         t_from=t_from, max_models=max_models) \
+        if regime_features is not None else {}
     return FaultHypothesisResidualModel(models=models, config=config, fault=fault,
                                         directions=directions, model_id=model_id or fault,
-                                        window=window, regimes=regimes)
+                                        window=window, regimes=regimes,
+                                        regime_directions=further)
+
+
+# Inputs of a further regime's effect maps: the operating point, the load and the EGR valve's
+# opening (an EGR fault's effect follows the valve and the exhaust back pressure; a leak's or
+# a vent's the fresh air's share of the charge, which the valve sets)
+REGIME_EFFECT_INPUTS = ("n", "rho2", "fuel", "egr_cmd")
+# Fewest valid faulty segments of a regime for effect maps of its own
+MIN_EFFECT_SEGMENTS = 200
+
+
+def identify_regime_directions(models: ReferenceModelSet, config: SymptomConfig,
+                               features: Sequence[FeatureVector], *, size: float,
+                               t_from: float, inputs: Sequence[str] = REGIME_EFFECT_INPUTS,
+                               max_models: int = 8) -> dict[str, dict[str, Lolimot]]:
+    """Effect maps of the further (quasi-stationary) regimes in faulty ``features`` (the fault
+    of ``size`` present from ``t_from`` on): per regime with at least
+    :data:`MIN_EFFECT_SEGMENTS` valid segments, one LOLIMOT map per residual judged there."""
+    from fdi_ros.core.lolimot import Lolimot
+
+    feats = [fv for fv in features if fv.t_start >= t_from]
+    rvs = stream_residuals(models, feats, config=config)
+    out: dict[str, dict[str, Lolimot]] = {}
+    for regime in sorted({rv.regime for rv in rvs if rv.valid}):
+        if regime in ("", models.regime) or regime.endswith(TRANSIENT_SUFFIX) \
+                or not config.knows(regime):
+            continue
+        keep = [i for i, rv in enumerate(rvs) if rv.valid and rv.regime == regime]
+        if len(keep) < MIN_EFFECT_SEGMENTS:
+            continue
+        judged = config.regimes[regime].get("judged") or (True,) * len(config.names)
+        Z = np.array([_z(rvs[i].values, config, regime) for i in keep]) / size
+        try:
+            X = np.array([[feats[i].get(k) for k in inputs] for i in keep])
+        except KeyError as exc:
+            raise ValueError(f"effect-map input missing from the features: {exc}") from None
+        maps = {}
+        for j, name in enumerate(config.names):
+            if judged[j]:
+                m = Lolimot(max_models=max_models, min_samples_per_model=50)
+                m.fit(X, Z[:, j], input_names=tuple(inputs), output_name=f"g_{name}")
+                maps[name] = m
+        out[regime] = maps
+    return out
 
 
 def _register() -> None:
@@ -860,7 +957,7 @@ def _register() -> None:
             window=int(spec.get("window", meta.get("window", DEFAULT_WINDOW))),
             penalty=float(spec.get("penalty", meta.get("penalty", DEFAULT_PENALTY))),
             min_effect=float(spec.get("min_effect", meta.get("min_effect", 1.0))),
-            regimes=meta.get("regimes"))
+            regimes=meta.get("regimes"), regime_directions=meta.get("regime_maps"))
 
 
 _register()

@@ -34,6 +34,9 @@ HYPOTHESIS_SIZES = {"crankcase_vent_open": 10.0, "leak_ic_engine": 5.0,
 # spec names ``size:``; sizes are clipped to the plant's fault limits.
 SIZE_FACTORS = {"small": 0.5, "medium": 1.0, "large": 2.0}
 HYPOTHESIS_WINDOW = 40  # segments over which a hypothesis estimates its fault size (0.6 s)
+# What a hypothesis holds: 2 = effect maps of the EGR-open regimes beside the base regime's
+# (hypotheses of an older layout are rebuilt)
+HYPOTHESIS_LAYOUT = 2
 BUILD_INFO = "build_info.json"
 REFERENCE_FILES = ("reference_models.json", "thresholds.json")
 
@@ -161,6 +164,7 @@ def _hypothesis_current(spec: dict, fault_id: str) -> bool:
         return False
     fault, size = hypothesis_fault(fault_id, spec)
     return bool(info.get("reference") == reference_fingerprint(spec["path"])
+                and info.get("layout") == HYPOTHESIS_LAYOUT
                 and info.get("fault", fault) == fault
                 and math.isclose(float(info.get("size", size)), size))
 
@@ -227,6 +231,7 @@ def build_bank(cfg: GraphConfig, *, progress: bool = True, seed: int = 0,
     t0 = time.perf_counter()
     built = []
     ident = [str(cfg.resolve(s)) for s in (*REFERENCE_SOURCES, *REGIME_SOURCES)]
+    regime_ident = str(cfg.resolve(REGIME_SOURCES[0]))   # the EGR-open regimes' slow passes
     drives = [str(cfg.resolve(s)) for s in THRESHOLD_SOURCES]
     refs = [s for s in todo if s[1]["type"] == "diesel_reference"]
     jobs = []
@@ -235,7 +240,7 @@ def build_bank(cfg: GraphConfig, *, progress: bool = True, seed: int = 0,
         fault, size = hypothesis_fault(next(iter(cfg.entry(mid).faults)), spec)
         log(f"[bank] identifying fault hypothesis {mid!r} ({fault} {size:g} "
             f"{FAULT_UNITS[fault]}) -> {spec['hypothesis']}")
-        jobs.append((ident[0], mid, spec, fault, size, seed + 500 + i))
+        jobs.append((ident[0], regime_ident, mid, spec, fault, size, seed + 500 + i))
     with process_pool() as pool:
         # the reference's data first (cached in build/), then the hypotheses' simulations
         ref_data = [pool.submit(_simulate_reference, job) for job in
@@ -269,45 +274,56 @@ def _simulate_reference(job: tuple[str, int]) -> str:
     return scenario
 
 
-def _simulate_hypothesis(job: tuple[str, str, dict, str, float, int]) -> tuple[str, float]:
-    """Simulate the identification cycle with one hypothesis' fault (a worker process) into a
-    feature file beside its model; returns (path, seconds)."""
+_Job = tuple[str, str, str, dict, str, float, int]
+
+
+def _simulate_hypothesis(job: _Job) -> tuple[list[str], float]:
+    """Simulate the identification cycle and the EGR-open regimes' slow passes with one
+    hypothesis' fault (a worker process) into feature files beside its model; returns (paths,
+    seconds)."""
     from fdi_ros.plants.diesel.identify import _write_cache, simulate_features
 
-    scenario, mid, spec, fault, size, seed = job
+    scenario, regime_scenario, mid, spec, fault, size, seed = job
     t0 = time.perf_counter()
-    feats, _ = simulate_features(
-        scenario, seed=seed, progress=False,
-        faults=[FaultEvent(t=5.0, fault=fault, size=size, size_unit=FAULT_UNITS[fault])])
-    path = Path(spec["hypothesis"]) / "identification_features.npz"
-    _write_cache(path, feats)
-    if not path.exists():
-        raise ValueError(f"{mid}: the simulation gave no uniform feature vectors to identify on")
-    return str(path), time.perf_counter() - t0
+    paths = []
+    for k, (src, name) in enumerate(((scenario, "identification"),
+                                     (regime_scenario, "regime_identification"))):
+        feats, _ = simulate_features(
+            src, seed=seed + 1000 * k, progress=False,
+            faults=[FaultEvent(t=5.0, fault=fault, size=size, size_unit=FAULT_UNITS[fault])])
+        path = Path(spec["hypothesis"]) / f"{name}_features.npz"
+        _write_cache(path, feats)
+        if not path.exists():
+            raise ValueError(f"{mid}: the simulation of {src} gave no uniform feature vectors "
+                             "to identify on")
+        paths.append(str(path))
+    return paths, time.perf_counter() - t0
 
 
-def _fit_hypothesis(arg: tuple[tuple[str, str, dict, str, float, int], tuple[str, float]]
-                    ) -> tuple[str, float]:
+def _fit_hypothesis(arg: tuple[_Job, tuple[list[str], float]]) -> tuple[str, float]:
     """Identify one fault hypothesis of the bank on its simulated features and the reference
     (a worker process), save; returns (model id, seconds of simulation and fit)."""
     from fdi_ros.plants.diesel.identify import _read_cache
     from fdi_ros.plants.diesel.reference import ReferenceModelSet
     from fdi_ros.plants.diesel.symptoms import identify_fault_hypothesis, load_symptom_config
 
-    (_scenario, mid, spec, fault, size, seed), (path, sim_s) = arg
+    (_scenario, _regime_scenario, mid, spec, fault, size, seed), (paths, sim_s) = arg
     t0 = time.perf_counter()
     mset = ReferenceModelSet.load(spec["path"])
     scfg = load_symptom_config(spec["path"])
     if scfg is None:
         raise ValueError(f"{spec['path']}: no thresholds for the hypothesis {mid!r}")
-    feats = _read_cache(Path(path))
-    Path(path).unlink()
+    feats, regime_feats = (_read_cache(Path(p)) for p in paths)
+    for p in paths:
+        Path(p).unlink()
     hyp = identify_fault_hypothesis(mset, scfg, feats, fault=fault, size=size, t_from=6.0,
-                                    model_id=mid, window=HYPOTHESIS_WINDOW)
+                                    model_id=mid, window=HYPOTHESIS_WINDOW,
+                                    regime_features=regime_feats)
     hyp.save(spec["hypothesis"])
     (Path(spec["hypothesis"]) / BUILD_INFO).write_text(json.dumps(
         {"reference": reference_fingerprint(spec["path"]), "fault": fault, "size": size,
-         "seed": seed, "window": HYPOTHESIS_WINDOW}))
+         "seed": seed, "window": HYPOTHESIS_WINDOW, "layout": HYPOTHESIS_LAYOUT,
+         "regimes": sorted(hyp.regime_directions)}))
     return mid, sim_s + time.perf_counter() - t0
 
 

@@ -77,6 +77,28 @@ def test_scenarios_take_the_ecu_maps_and_passes():
     assert np.all(first == 0.0) and second.max() > 0.3
 
 
+def test_the_ecu_limits_a_torque_demand_to_its_full_load_fuel():
+    """A torque the engine cannot give at that speed (200 Nm at 4200 rpm: the full-load curve
+    gives about 170) gets the full-load fuel with an ECU; without one the plant's flat fuel
+    limit applies; a demand below the curve is met as it is (random speeds and torques)."""
+    from fdi_ros.plants.diesel.plant import DieselParams, fuel_for_torque
+    from fdi_ros.plants.diesel.scenario import load_scenario
+
+    ecu, p = EcuSchedule(), DieselParams()
+    rng = np.random.default_rng()
+    for n, tq in [(4200.0, 200.0)] + [(float(rng.uniform(900, 5000)),
+                                       float(rng.uniform(0, 260))) for _ in range(20)]:
+        pts = [{"t": 0.0, "n": n, "torque": tq}, {"t": 1.0, "n": n, "torque": tq}]
+        with_ecu = load_scenario({"name": "a", "inputs": {"kind": "points", "ecu": {},
+                                                          "points": pts}}).inputs_at(0.5)[1]
+        without = load_scenario({"name": "b", "inputs": {"kind": "points",
+                                                         "points": pts}}).inputs_at(0.5)[1]
+        want = float(fuel_for_torque(n, tq, p))
+        assert without == pytest.approx(want)
+        assert with_ecu == pytest.approx(min(want, ecu.full_load_fuel(n))), (n, tq)
+    assert ecu.full_load_fuel(4200.0) < fuel_for_torque(4200.0, 200.0, p)
+
+
 def test_realistic_drive_file():
     from fdi_ros.plants.diesel.drive import drive_document, window
     from fdi_ros.plants.diesel.plant import FAULT_IDS

@@ -88,9 +88,14 @@ class EcuSchedule:
             raise ValueError(f"unknown ECU schedule settings {sorted(unknown)}")
         return cls(**d)
 
+    def full_load_fuel(self, n: float) -> float:
+        """Full-load fuel [mg/stroke] at speed ``n`` [rpm]: the torque limiter's (smoke and
+        rated-power) curve; a torque demand above it gets this fuel."""
+        return float(np.interp(n, self.full_n, self.full_fuel))
+
     def load(self, n: float, fuel: float) -> float:
         """Relative load: injected fuel over the full-load fuel at this speed."""
-        return float(fuel) / float(np.interp(n, self.full_n, self.full_fuel))
+        return float(fuel) / self.full_load_fuel(n)
 
     def egr(self, n: float, fuel: float) -> float:
         """Scheduled EGR valve command [0..1] (0 = closed)."""

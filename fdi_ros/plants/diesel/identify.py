@@ -34,8 +34,9 @@ DEFAULT_CALIBRATION_TIPS = "config/scenarios/diesel_calibration_tips.yaml"
 CACHE_DIR = Path("build/cache/features")
 # Part of the feature cache's key: bumped whenever the plant or its preprocessing changes
 # what a scenario's features are (2: the T2 rate became a quadratic's end-point slope, and
-# an EGR valve below the boost pressure passes intake gas back at the intake's density)
-FEATURES_VERSION = "features-2"
+# an EGR valve below the boost pressure passes intake gas back at the intake's density; 3: a
+# scenario with an ECU limits a torque demand to its full-load fuel)
+FEATURES_VERSION = "features-3"
 THRESHOLD_SEED = 101  # noise seed of the fault-free drives the thresholds are calibrated on
 
 

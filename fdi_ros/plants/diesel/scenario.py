@@ -26,7 +26,8 @@ A scenario file (``config/scenarios/diesel_*.yaml``)::
 ``inputs.ecu: {...}`` lets the engine ECU command the EGR valve and the swirl flaps from its
 maps of speed and load (:class:`~fdi_ros.plants.diesel.ecu.EcuSchedule`; ``{}`` = defaults)
 wherever a point has ``ecu: true`` (the default when the block is given); such a point's
-``egr_trim`` is added to the scheduled EGR command (closed-loop air-mass control).
+``egr_trim`` is added to the scheduled EGR command (closed-loop air-mass control), and its
+torque demand is limited to the ECU's full-load fuel (the torque limiter: 74 kW at 4000 rpm).
 
 ``inputs.kind: zigzag`` ramps the speed slowly from ``n_min`` to ``n_max`` and back (each
 way ``n_ramp_s``) while the fuel follows a raised-cosine wave (period about
@@ -246,6 +247,10 @@ def _parse(d: Mapping[str, Any], where: str) -> Scenario:
         n = float(p["n"])
         fuel = float(p["fuel"]) if "fuel" in p else float(fuel_for_torque(n, p["torque"],
                                                                           params))
+        if "torque" in p and ecu is not None and p.get("ecu", True):
+            # the ECU's torque limiter: a demand above the full-load curve gets full load
+            # (74 kW at 4000 rpm; the plant's own limit, fuel_max, is flat)
+            fuel = min(fuel, ecu.full_load_fuel(n))
         cols["t"].append(float(p["t"]))
         cols["n"].append(n)
         cols["fuel"].append(fuel)

@@ -232,3 +232,47 @@ def test_storage_coefficient_recovered_with_the_static_map():
     off = identify_reference_models(d, config=IdentificationConfig(max_models=12,
                                                                    storage_correction=False))
     assert res.nrmse_test["eta_v"] < off.nrmse_test["eta_v"]
+
+
+def test_effect_maps_of_further_regimes_are_saved_loaded_and_used_there(identified, tmp_path):
+    """A hypothesis with effect maps of a further regime (judged on r_eta only): saved and
+    loaded through the registry it gives the same g(x) there, covers that regime and the
+    base one, nothing else; a hypothesis of the older layout (no such maps) still loads."""
+    from fdi_ros.core.lolimot import Lolimot
+    from fdi_ros.plants.diesel.symptoms import FaultHypothesisResidualModel
+
+    _, res = identified
+    clean = _synthetic(2000, 12)
+    R, valid = parity_residuals(res.models, clean)
+    cfg = calibrate_thresholds(R, valid)
+    rng = np.random.default_rng()
+    X = np.column_stack([rng.uniform(1000, 3000, 400), rng.uniform(1.0, 1.6, 400),
+                         rng.uniform(2, 30, 400), rng.uniform(0.1, 0.6, 400)])
+    g = -0.5 + 0.3 * X[:, 3] - 1e-4 * (X[:, 0] - 2000)   # a smooth effect with the valve
+    m = Lolimot(max_models=3, min_samples_per_model=50)
+    m.fit(X, g, input_names=("n", "rho2", "fuel", "egr_cmd"), output_name="g_r_eta")
+    base = {name: Lolimot(max_models=1, min_samples_per_model=20) for name in ("r_eta",)}
+    base["r_eta"].fit(X[:, :2], np.full(400, 0.4), input_names=("n", "rho2"),
+                      output_name="g_r_eta")
+    h = FaultHypothesisResidualModel(models=res.models, config=cfg, fault="leak",
+                                     directions=base, model_id="leak", regimes=("base",),
+                                     regime_directions={"egr_open_flaps_open": {"r_eta": m}})
+    h.save(tmp_path / "leak")
+    res.models.save(tmp_path)
+    (tmp_path / THRESHOLDS_FILE).write_text(json.dumps(cfg.to_dict()))
+    spec = {"type": "diesel_fault_hypothesis", "path": str(tmp_path),
+            "hypothesis": str(tmp_path / "leak")}
+    back = load_residual_model(spec, model_id="leak")
+    assert back.covers("base") and back.covers("egr_open_flaps_open")
+    assert not back.covers("egr_open_flaps_closed")
+    assert back.inputs_for("egr_open_flaps_open") == ("n", "rho2", "fuel", "egr_cmd")
+    G = back.direction(X, "egr_open_flaps_open")
+    np.testing.assert_allclose(G, h.direction(X, "egr_open_flaps_open"), rtol=1e-12)
+    np.testing.assert_allclose(G[:, 0], m.predict(X), rtol=1e-9, atol=1e-12)
+    assert not G[:, 1:].any()   # residuals not judged there: no effect
+    np.testing.assert_allclose(back.direction(X[:, :2])[:, 0], 0.4, atol=1e-9)
+    meta = json.loads((tmp_path / "leak" / "hypothesis.json").read_text())
+    del meta["regime_directions"]
+    (tmp_path / "leak" / "hypothesis.json").write_text(json.dumps(meta))
+    old = load_residual_model(spec, model_id="leak")
+    assert old.covers("base") and not old.covers("egr_open_flaps_open")

@@ -202,14 +202,16 @@ def identification_table(streams) -> dict:
 def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
                  threshold_seed: int = THRESHOLD_SEED, mapping=None, config=None,
                  progress: bool = True, figures=None, log=lambda s: None,
-                 further_regimes: bool = False, regime_sources=()):
+                 further_regimes: bool = False, regime_sources=(),
+                 record_sources: bool = False):
     """Identify, save, calibrate the fault-free thresholds; returns (result, symptom config or
     None, report dict). ``data_source`` and ``fault_free``: one source (scenario, bag, CSV) or
     a list of them; each source is a stream of its own (e.g. the EGR-closed identification
     cycle and the part-load passes with the ECU's maps); with ``further_regimes`` every
     operating regime with enough data gets models of its own (:func:`identify_regime_models`),
     else the base regime's only; ``regime_sources``: more streams for the further regimes
-    only (seeds after the data sources')."""
+    only (seeds after the data sources'); ``record_sources``: keep a digest of the sources
+    with the models (the bank's set: rebuilt when one of them changes)."""
     import numpy as np
 
     from fdi_ros.plants.diesel.reference import (
@@ -238,6 +240,10 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
     out = Path(out)
     res.models.info["further_regimes"] = bool(further_regimes)
     res.models.info["features"] = FEATURES_VERSION
+    if record_sources:
+        ff_list = fault_free if isinstance(fault_free, (list, tuple)) else [fault_free]
+        res.models.info["sources"] = sources_digest(
+            [*sources, *(regime_sources if further_regimes else ()), *ff_list])
     res.models.save(out)
     info = res.models.info
     report = {"out": str(out), "n_segments": int(data["n"].size), "n_train": res.n_train,
@@ -287,6 +293,25 @@ THRESHOLD_SOURCES = (DEFAULT_DRIVE, DEFAULT_CALIBRATION_DRIVE, DEFAULT_CALIBRATI
                      DEFAULT_CALIBRATION_TIPS)
 
 
+def sources_digest(sources) -> str:
+    """Digest of the identification and calibration sources a model set was built from (file
+    names and contents; other sources by their name): a set is rebuilt when one changes."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for src in sources:
+        path = Path(str(src))
+        h.update(path.name.encode() + b"\0")
+        if path.is_file():
+            h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def reference_sources(resolve=Path) -> list[str]:
+    """Every source :func:`build_reference_models` reads, resolved, in its order."""
+    return [str(resolve(s)) for s in (*REFERENCE_SOURCES, *REGIME_SOURCES, *THRESHOLD_SOURCES)]
+
+
 def build_reference_models(out, *, seed: int = 0, progress: bool = True, log=lambda s: None,
                            resolve=Path):
     """The reference model set of the diesel graph's bank (the base regime, with the ECU's
@@ -298,7 +323,8 @@ def build_reference_models(out, *, seed: int = 0, progress: bool = True, log=lam
                         fault_free=[str(resolve(s)) for s in THRESHOLD_SOURCES],
                         threshold_seed=THRESHOLD_SEED, progress=progress, log=log,
                         further_regimes=True,
-                        regime_sources=[str(resolve(s)) for s in REGIME_SOURCES])
+                        regime_sources=[str(resolve(s)) for s in REGIME_SOURCES],
+                        record_sources=True)
 
 
 def identification_figures(res, data, outdir) -> list[Path]:

@@ -169,10 +169,12 @@ def _hypothesis_current(spec: dict, fault_id: str) -> bool:
                 and math.isclose(float(info.get("size", size)), size))
 
 
-def _reference_current(d: Path) -> bool:
-    """The reference model set exists, was identified on today's features and carries its
-    validity region with today's actuator tolerances (sets identified before are rebuilt)."""
-    from fdi_ros.plants.diesel.identify import FEATURES_VERSION
+def _reference_current(d: Path, resolve: Callable[[str], Any] = Path) -> bool:
+    """The reference model set exists, was identified on today's features (and, a set the
+    bank builder made, on its identification and calibration scenarios as they are now: one
+    identified by hand on other data is kept) and carries its validity region with today's
+    actuator tolerances (sets identified before are rebuilt)."""
+    from fdi_ros.plants.diesel.identify import FEATURES_VERSION, reference_sources, sources_digest
     from fdi_ros.plants.diesel.reference import ACTUATOR_TOL
 
     if not all((d / f).exists() for f in REFERENCE_FILES):
@@ -186,23 +188,29 @@ def _reference_current(d: Path) -> bool:
     # rebuilt)
     info = manifest.get("info", {})
     if not validity or not info.get("regime") or not info.get("further_regimes") \
-            or info.get("features") != FEATURES_VERSION:
+            or info.get("features") != FEATURES_VERSION \
+            or info.get("sources", "") not in ("", sources_digest(reference_sources(resolve))):
         return False
     tol = {r.get("name"): r.get("tol") for r in validity.get("ranges", [])}
     return all(tol.get(k, v) == v for k, v in ACTUATOR_TOL.items())
 
 
 def _missing(cfg: GraphConfig) -> list[tuple[str, dict]]:
+    """The bank's models to (re)build: missing or stale references, and the hypotheses that
+    are missing, stale, or rest on a reference rebuilt now (they are fitted on it)."""
     out = []
-    for e in cfg.bank:
-        spec = cfg.resolve_spec(e.model)
-        if not isinstance(spec, dict):
-            continue
-        if spec.get("type") == "diesel_reference":
-            if not _reference_current(Path(spec["path"])):
-                out.append((e.id, spec))
-        elif spec.get("type") == "diesel_fault_hypothesis" and not _hypothesis_current(
-                spec, next(iter(e.faults), "")):
+    specs = [(e, cfg.resolve_spec(e.model)) for e in cfg.bank]
+    specs = [(e, s) for e, s in specs if isinstance(s, dict)]
+    rebuilt = set()
+    for e, spec in specs:
+        if spec.get("type") == "diesel_reference" and not _reference_current(
+                Path(spec["path"]), cfg.resolve):
+            out.append((e.id, spec))
+            rebuilt.add(Path(spec["path"]).resolve())
+    for e, spec in specs:
+        if spec.get("type") == "diesel_fault_hypothesis" and (
+                Path(spec.get("path", ".")).resolve() in rebuilt
+                or not _hypothesis_current(spec, next(iter(e.faults), ""))):
             out.append((e.id, spec))
     return out
 

@@ -668,7 +668,6 @@ class FaultHypothesisResidualModel(_Batchable):
         # the effect maps evaluated together (one pass per segment, not one per residual)
         self._maps = {r: _EffectMaps(d, config.names) for r, d in further.items()}
         self._base = _EffectMaps(self.directions, config.names)
-        self._cols, self._stack = self._base.cols, self._base.stack
         self.size_estimate = 0.0
         self._qs = QuasiStationarity(config)
 

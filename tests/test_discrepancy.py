@@ -187,6 +187,26 @@ def test_null_white_noise_is_consistent_over_seeds():
         assert res.verdict == "consistent", [(f.label, f.p_adjusted) for f in res.findings]
 
 
+def test_a_consistent_record_names_its_suspect_fitted_on_every_sample():
+    """Nothing significant (here: a family-wise level no test reaches), but a candidate gains
+    well over 10 % held-out: the verdict stays "consistent" and the suspect is that
+    explanation, marked not significant, with its parameter fitted on every sample (the one
+    least-squares gain); white noise has no suspect."""
+    rng = np.random.default_rng()
+    t = np.arange(0, 90, 0.05)
+    yhat = _signal(rng, t)
+    gain = float(rng.uniform(1.05, 1.1))
+    y = gain * yhat + rng.normal(0, 0.3, t.size)
+    res = analyse({"y": _ctx(y, yhat, t)}, config=DiscrepancyConfig(alpha=1e-12))
+    assert res.verdict == "consistent" and not res.findings
+    sus = res.suspect
+    assert sus is not None and not sus.significant and sus.effect == "gain_error"
+    assert sus.params["gain"] == pytest.approx(np.dot(y, yhat) / np.dot(yhat, yhat), rel=1e-9)
+    assert res.to_dict()["suspect"]["label"] == sus.label and "suspect" in res.message
+    quiet = analyse({"y": _ctx(yhat + rng.normal(0, 0.5, t.size), yhat, t)})
+    assert quiet.verdict == "consistent" and quiet.suspect is None
+
+
 def test_config_is_validated():
     with pytest.raises(ValueError):
         DiscrepancyConfig(n_blocks=2)

@@ -463,8 +463,9 @@ def _verdict(findings: list[Finding], table: list[Candidate], alpha: float = 0.0
         if suspect is not None and c.p_adjusted >= alpha:
             ties = ", ".join(f"{a['label']} on {a['channel']}"
                              for a in suspect.alternatives[:3])
-            msg += (f"; over every residual the suspect is {suspect.label} on "
-                    f"{suspect.channel} ({_brief(suspect.params)}), not significant"
+            msg += (f"; the suspect (the best explanation, over every residual that checks "
+                    f"it, fitted on every sample) is {suspect.label} on {suspect.channel} "
+                    f"({_brief(suspect.params)}), not significant"
                     + (f"; tied: {ties}" if ties else ""))
     return "consistent", msg
 
@@ -915,8 +916,8 @@ def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
         h, choice = _one_se_choice(pool or scored, cfg.alpha, n_eff)
         sig = choice.p_adjusted < cfg.alpha and choice.gain_pct >= cfg.min_gain_pct
         ties_from = scored
-        if second and (sig and _relevant(views, chain, h)
-                       or not sig and step == 0 and choice.gain_pct >= SUSPECT_GAIN_PCT):
+        suspected = not sig and step == 0 and choice.gain_pct >= SUSPECT_GAIN_PCT
+        if second and (sig and _relevant(views, chain, h) or suspected):
             # the leading explanations are checked on the secondary residuals too: scored
             # jointly over every residual, the one that explains all of them is named (and,
             # when nothing is significant, reported as the suspect)
@@ -938,11 +939,12 @@ def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
                      f"{choice.gain_pct:.1f}% p_adj {choice.p_adjusted:.2g}"
                      f"{' (significant)' if sig else ''}")
         alternatives = _alternatives(views, chain, ties_from, choice, h.primary, base,
-                                     cfg.alpha) if sig or ties_from is not scored else []
+                                     cfg.alpha) if sig or suspected else []
         if not sig:
-            if ties_from is not scored:
-                # nothing significant: the best explanation over every residual, fitted on
-                # every valid sample, is reported as the suspect (not a finding)
+            if suspected:
+                # nothing significant: the best explanation (over every residual where others
+                # check it), fitted on every valid sample, is reported as the suspect (not a
+                # finding)
                 for c in views.values():
                     c.ctx.cache.clear()
                     c.ctx.folds, c.ctx.fold_ids = None, {}
@@ -960,8 +962,8 @@ def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
 
 
 # Held-out gain [%] from which the best explanation of a record with no significant finding
-# is judged on every residual and reported as the suspect (with its parameters and ties): a
-# user reads "consistent" together with what, if anything, came closest
+# is reported as the suspect (judged on every residual, with its parameters and ties): a user
+# reads "consistent" together with what, if anything, came closest
 SUSPECT_GAIN_PCT = 10.0
 MIN_GAIN_EFFECT = 0.01  # relevance floor of a gain error: |gain - 1| [1]
 MIN_EFFECT_REL = 0.01  # relevance floor of any effect: its error / RMS of the reading

@@ -131,6 +131,38 @@ def test_partial_signatures_isolate_only_a_fault_alone_in_its_sign(tmp_path):
             assert d.state == "detected", (levels, partial, d)
 
 
+def test_faults_the_symptoms_show_compete_and_a_close_runner_up_blocks_isolation(tmp_path):
+    """Every residual judged, symptom s_1 "-" only: the table's exact match (b) and every
+    fault whose signature shows that symptom (a: its s_2 does not show here, as a table
+    measured at one operating point allows elsewhere) compete; the best hypothesis isolates
+    when its norm is clearly below the runner-up's, and a close runner-up leaves the fault
+    detected, ambiguous, not isolated (random norms on either side of the margin)."""
+    from fdi_ros.core.diagnoser import AMBIGUITY
+
+    cfg_file = tmp_path / "config" / "g.yaml"
+    cfg_file.parent.mkdir()
+    cfg_file.write_text(CONFIG)
+    table = FaultSymptomTable(("s_1", "s_2"), {"a": (-1, 1), "b": (-1, 0), "c": (1, 0)})
+    rng = np.random.default_rng()
+    clear = float(rng.uniform(0.1, 0.9 * AMBIGUITY))
+    close = float(rng.uniform(1.05 * AMBIGUITY, 1.0))
+    for ratio, want in ((clear, ("a",)), (close, ())):
+        diag = Diagnoser(load_graph_config(cfg_file))
+        diag.table = table
+        diag.reference_id = "nominal"
+        diag.symptom_gen = _Sym("", False, (-1, 0))
+        norms = {"nominal": 5.0, "a": 3.0 * ratio, "b": 3.0}
+        for k in range(25):   # symptoms from 1 s, T0 = 0.5 s
+            t = 0.1 * k
+            res = {m: ResidualVector(m, 0, t, True, "", ("r",), ("1",), np.array([3.0]), v)
+                   for m, v in norms.items()}
+            step = diag.update(k, t, res)
+        d = step.diagnosis
+        assert d.isolated_faults == want, (ratio, d)
+        if not want:
+            assert d.state == "detected" and d.extra.get("ambiguous"), d
+
+
 def test_judged_fault_free_is_no_fault_without_valid_hypotheses(tmp_path):
     """The reference model's symptoms valid and quiet, every hypothesis "not valid here" (the
     diesel's EGR valve open: the hypotheses' maps do not hold there): the diagnosis is

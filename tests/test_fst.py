@@ -9,7 +9,7 @@ import os
 import numpy as np
 import pytest
 
-from fdi_ros.core.fst import FaultSymptomTable, isolate, isolate_in_sign
+from fdi_ros.core.fst import FaultSymptomTable, covering, isolate, isolate_in_sign
 
 TABLE = FaultSymptomTable(("s1", "s2", "s3"), {
     "leak": (-1, 0, 0), "egr": (2, -1, -1), "vent": (1, 0, 0), "restr": (0, -1, 1)})
@@ -134,3 +134,25 @@ def test_partial_signatures_match_in_sign_on_the_judged_symptoms_only():
                 if all(np.sign(row[names.index(c)]) == np.sign(obs[c]) for c in judged)] \
             if any(obs[c] for c in judged) else []
         assert isolate_in_sign(obs, table, judged) == want, (seed, table, obs, judged)
+
+
+def test_covering_keeps_every_fault_that_shows_the_observed_symptoms():
+    """A fault is kept when its signature has every observed symptom in sign; its other
+    symptoms may not show (checked against the definition on random tables, seed at test
+    time)."""
+    assert covering((-1, 0, 0), TABLE) == ["leak"]
+    assert covering((2, 0, 0), TABLE) == ["egr", "vent"]      # "++" shows as "+" too
+    assert covering((1, -1, 0), TABLE) == ["egr"]             # egr's s3 does not show
+    assert covering((0, -1, 1), TABLE) == ["restr"]
+    assert covering((0, 0, 0), TABLE) == []
+    seed = int(os.environ.get("FST_SEED", np.random.SeedSequence().entropy % 2**32))
+    rng = np.random.default_rng(seed)
+    for _ in range(300):
+        n = int(rng.integers(1, 6))
+        table = {f"f{i}": tuple(int(v) for v in rng.choice([-1, 0, 1, 2], n))
+                 for i in range(int(rng.integers(1, 7)))}
+        obs = tuple(int(v) for v in rng.choice([-1, 0, 1, 2], n))
+        want = [f for f, row in table.items()
+                if all(np.sign(row[j]) == np.sign(obs[j]) for j in range(n) if obs[j])] \
+            if any(obs) else []
+        assert covering(obs, table) == want, (seed, table, obs)

@@ -231,10 +231,14 @@ def test_hard_tip_ins_and_tip_outs_drawn_at_random_give_no_symptom(diesel_bank):
     assert {s.diagnosis.state for _, _, s in fast} <= {"no_fault", "not_valid"}
 
 
-def test_a_leak_opened_at_random_on_the_realistic_drive_is_never_isolated_wrong(diesel_bank):
-    """The 5 mm leak opened at random times of the realistic drive (seed printed), in whatever
-    regime the drive is then, the EGR-open ones included where its effect maps are new: no
-    symptom before it, and an isolation, if any, is the leak (its eta_V sign is its own)."""
+def test_faults_opened_at_random_on_the_realistic_drive_are_never_isolated_wrong(diesel_bank):
+    """A leak, an open crank-case vent and a stuck-open EGR valve, each opened at a random time
+    of the realistic drive (seed printed), in whatever regime the drive is then: no symptom
+    before it, and an isolation, if any, names it. The table is measured at one operating
+    point: elsewhere a fault shows fewer of its symptoms (the stuck valve at 4400 rpm s_eta
+    alone, which is the vent's exact row: it was isolated as the vent), so every fault whose
+    row shows the observed symptoms competes and a close runner-up blocks the isolation; with
+    the EGR valve open only a fault alone in its sign may be isolated (the leak)."""
     import dataclasses
     import os
     import secrets
@@ -245,6 +249,7 @@ def test_a_leak_opened_at_random_on_the_realistic_drive_is_never_isolated_wrong(
     from fdi_ros.plants.diesel.coverage import REALISTIC_DRIVE
     from fdi_ros.plants.diesel.drive import DRIVE_FAULT_SIZES, window
     from fdi_ros.plants.diesel.identify import simulate_features
+    from fdi_ros.plants.diesel.plant import FAULT_UNITS
     from fdi_ros.plants.diesel.scenario import load_cases
 
     cfg = load_graph_config(diesel_bank)
@@ -252,19 +257,17 @@ def test_a_leak_opened_at_random_on_the_realistic_drive_is_never_isolated_wrong(
     seed = int(os.environ.get("FDI_TEST_SEED") or secrets.randbelow(2**32))
     print(f"seed {seed}")
     rng = np.random.default_rng(seed)
-    isolated_open = 0
-    for _ in range(3):
+    for fault in rng.choice(["leak_ic_engine", "crankcase_vent_open", "egr_stuck_open"], 3,
+                            replace=False):
+        fault = str(fault)
         onset = float(rng.uniform(30.0, drive.duration_s - 20.0))
         sc = dataclasses.replace(window(drive, onset - 4.0, onset + 10.0), faults=(
-            FaultEvent(t=4.0, fault="leak_ic_engine",
-                       size=DRIVE_FAULT_SIZES["leak_ic_engine"], size_unit="mm"),))
+            FaultEvent(t=4.0, fault=fault, size=DRIVE_FAULT_SIZES[fault],
+                       size_unit=FAULT_UNITS[fault]),))
         feats, _ = simulate_features(sc, seed=int(rng.integers(10_000)))
         steps = diagnose_offline(cfg, feats)
-        where = (seed, round(onset, 2))
+        where = (seed, fault, round(onset, 2))
         for fv, _, s in steps:
             if fv.t_end < 4.0:
                 assert not (s.symptoms.valid and any(s.symptoms.levels)), (where, fv.t_end)
-            assert set(s.diagnosis.isolated_faults) <= {"leak_ic_engine"}, (where, s.diagnosis)
-            isolated_open += s.diagnosis.state == "isolated" and \
-                s.symptoms.regime.startswith("egr_open")
-    print(f"isolated steps with the EGR valve open: {isolated_open}")
+            assert set(s.diagnosis.isolated_faults) <= {fault}, (where, s.diagnosis)

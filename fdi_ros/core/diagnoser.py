@@ -18,6 +18,7 @@ import numpy as np
 
 from fdi_ros.core.fst import (
     FaultSymptomTable,
+    covering,
     isolate,
     isolate_in_sign,
     load_fault_symptom_tables,
@@ -69,6 +70,11 @@ def _make_symptom_stage(cfg: GraphConfig
     return SymptomGenerator(conf), table, str(s.get("model", "nominal"))
 
 
+# Default share of the runner-up hypothesis' norm the best one must stay below to isolate
+# (graph configuration: ``symptoms.ambiguity``; 1 = the paper's plain minimum)
+AMBIGUITY = 0.7
+
+
 class Diagnoser:
     """Symptoms + fault-symptom table + expert supervisor over a model bank (pure core).
 
@@ -86,6 +92,8 @@ class Diagnoser:
         sym = cfg.symptoms or {}
         self.max_mismatch = int(sym.get("max_mismatch", 1))
         self.explain_norm = float(sym.get("explain_norm", math.inf))
+        # the best hypothesis isolates only with a norm below this share of the runner-up's
+        self.ambiguity = float(sym.get("ambiguity", AMBIGUITY))
         self._candidates: dict[tuple[int, ...], tuple[str, ...]] = {}
         self._partial: dict[tuple[Any, ...], tuple[str, ...]] = {}
 
@@ -131,7 +139,7 @@ class Diagnoser:
         before = self.models_online
         candidates: tuple[str, ...] = ()
         feed: dict[str, ResidualVector] = dict(residuals)
-        not_isolable = False
+        not_isolable = ambiguous = False
         if self.symptom_gen is not None:
             ref = residuals.get(self.reference_id)
             if symptoms is None and ref is not None:
@@ -152,9 +160,9 @@ class Diagnoser:
                 # cannot explain the residuals, however small its model's residual.
                 cached = self._candidates.get(observed)
                 if cached is None:   # a pure function of the pattern: once per pattern
-                    cached = self._candidates[observed] = tuple(isolate(
+                    cached = self._candidates[observed] = tuple(dict.fromkeys(isolate(
                         observed, self.table, max_mismatch=self.max_mismatch,
-                        opposite="exclude", keep="all"))
+                        opposite="exclude", keep="all") + covering(observed, self.table)))
                 candidates = cached
             if not self.supervisor.isolated:
                 if not active:
@@ -173,6 +181,13 @@ class Diagnoser:
                         k == self.reference_id or not v.norm > self.explain_norm)}
                     not_isolable = not any(k != self.reference_id and v.valid
                                            for k, v in feed.items())
+                    ranked = sorted(v.norm for k, v in feed.items()
+                                    if k != self.reference_id and v.valid)
+                    if len(ranked) >= 2 and not ranked[0] < self.ambiguity * ranked[1]:
+                        # two hypotheses explain the residuals about as well: no isolation
+                        # by a small difference (detected, ambiguous), the hold time restarts
+                        feed = {k: v for k, v in feed.items() if k == self.reference_id}
+                        ambiguous = True
         fm = feed.get(self.supervisor.fault_model)
         if fm is None or not fm.valid:
             # The model believed to match the plant (nominal at start) is the baseline of the
@@ -199,6 +214,8 @@ class Diagnoser:
                 and state in ("no_fault", "not_valid"):
             state = "detected"
         extra = dict(d.extra)
+        if ambiguous and state == "detected":
+            extra["ambiguous"] = True
         if not_isolable and state == "detected":
             # "detected, not isolable with the models on line": name the table's candidates,
             # those whose models are away (off line, dead, stale) included

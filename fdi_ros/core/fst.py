@@ -122,6 +122,21 @@ def isolate_in_sign(symptom_levels: Mapping[str, int], table: FaultSymptomTable,
     return [f for f, row in table.items() if [int(np.sign(row[j])) for j in at] == obs]
 
 
+def covering(symptom_levels: Sequence[int], table: Mapping[str, Sequence[int]]) -> list[str]:
+    """Faults whose signatures show every observed symptom, in sign (``symptom_levels`` in
+    the table's column order): a symptom of the signature that does not show is allowed. A
+    table measured at one operating point says which symptoms a fault can produce; elsewhere,
+    or at a smaller size, some stay below their thresholds (a stuck-open EGR valve at 4400 rpm
+    shows s_eta "++" and none of the pulsation symptoms the table has at 2000 rpm). No
+    symptom -> no candidate."""
+    obs = np.sign(np.asarray(symptom_levels, dtype=int))
+    if not obs.any():
+        return []
+    on = obs != 0
+    return [f for f, row in table.items()
+            if np.array_equal(np.sign(np.asarray(row, dtype=int))[on], obs[on])]
+
+
 def parse_signature(sig: str | Sequence[str | int], n: int) -> tuple[int, ...]:
     """``"+,o,-"`` (or a list of codes / integers) -> levels; ``n`` symptoms expected."""
     if isinstance(sig, str):

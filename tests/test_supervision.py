@@ -265,10 +265,13 @@ def test_core_live_settings_validated(tmp_path):
     core = _core(tmp_path)
     core.set("t0_s", 0.6)
     core.set("explain_norm", 1.5)
+    core.set("ambiguity", 0.8)
     core.set("reconcile", "respect")
     assert core.diag.supervisor.t0_s == 0.6 and core.diag.explain_norm == 1.5
+    assert core.diag.ambiguity == 0.8
     assert core.driver.policy.policy == "respect"
-    for name, bad in (("t0_s", -1.0), ("explain_norm", 0.0), ("lag_s", 0.0),
+    for name, bad in (("t0_s", -1.0), ("explain_norm", 0.0), ("ambiguity", 0.0),
+                      ("ambiguity", 1.5), ("lag_s", 0.0),
                       ("reconcile", "bogus"), ("reconcile_after_s", math.inf)):
         with pytest.raises(ValueError):
             core.set(name, bad)

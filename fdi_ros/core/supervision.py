@@ -44,6 +44,9 @@ PARAMS = {  # name: (default, description, read_only, (min, max) or None)
                         False, (0.1, 10.0)),
     "explain_norm": (math.nan, "largest residual norm of a hypothesis that explains the data "
                      "(default: the graph config)", False, None),
+    "ambiguity": (math.nan, "share of the runner-up hypothesis' norm the best one must stay "
+                  "below to isolate; 1: the plain minimum (default: the graph config)", False,
+                  None),
     "reconcile": ("reconcile", "external lifecycle changes: 'reconcile' or 'respect'", False,
                   None),
     "reconcile_after_s": (2.0, "wall s before an external change is undone", False,
@@ -397,6 +400,7 @@ class SupervisorCore:
                    snapshot_s=p["snapshot_s"], batched=bool(p.get("batched", True)))
         core.set("t0_s", p["t0_s"])
         core.set("explain_norm", p["explain_norm"])
+        core.set("ambiguity", p["ambiguity"])
         if core.diag.symptom_gen is not None:
             core.set("threshold_scale", p["threshold_scale"])
         return core
@@ -616,6 +620,10 @@ class SupervisorCore:
             if not value > 0:
                 raise ValueError(f"explain_norm must be > 0, not {value}")
             self.diag.explain_norm = float(value)
+        elif name == "ambiguity" and not math.isnan(value):
+            if not 0 < value <= 1:
+                raise ValueError(f"ambiguity must be in (0, 1], not {value}")
+            self.diag.ambiguity = float(value)
         elif name == "lag_s":
             if not value > 0:
                 raise ValueError(f"lag_s must be > 0, not {value}")

@@ -690,12 +690,21 @@ class FaultHypothesisResidualModel(_Batchable):
         """The segments about to be asked: parity residuals and effect maps g(x) of all of
         them in one evaluation each (a sensor block's segments, live)."""
         prefetch_shared(self.models, fvs)
-        try:
-            X = [[fv.get(k) for k in self.inputs] for fv in fvs]
-        except KeyError:
-            return
-        self._g = {(fv.index, fv.t_end): g for fv, g in zip(fvs, self.direction(X))} \
-            if X else {}
+        # each segment by the effect maps of its regime (the parity residuals' regime: a
+        # transient one is not covered and asks for none)
+        by_regime: dict[str, list[FeatureVector]] = {}
+        for fv in fvs:
+            hit = _SHARED.get(_shared_key(self.models, fv))
+            if hit is not None and hit[0] is self.models:
+                by_regime.setdefault(hit[1].regime, []).append(fv)
+        self._g = {}
+        for regime, group in by_regime.items():
+            try:
+                X = [[fv.get(k) for k in self.inputs_for(regime)] for fv in group]
+            except KeyError:
+                continue
+            self._g.update({(fv.index, fv.t_end): g
+                            for fv, g in zip(group, self.direction(X, regime))})
 
     @property
     def inputs(self) -> tuple[str, ...]:
@@ -722,7 +731,7 @@ class FaultHypothesisResidualModel(_Batchable):
             return self._elsewhere(rv)
         try:
             g = self._g.pop((fv.index, fv.t_end), None)
-            if g is None or rv.regime in self._maps:
+            if g is None:
                 g = self.direction([[fv.get(k) for k in self.inputs_for(rv.regime)]],
                                    rv.regime)[0]
         except KeyError as exc:

@@ -217,8 +217,8 @@ class SymptomConfig:
 
     def judges_all(self, regime: str = "") -> bool:
         """Whether every residual is judged in ``regime`` (a fault-symptom table's signatures
-        span them all: with some not judged there, they cannot be matched)."""
-        return all(self.regimes.get(regime, {}).get("judged", (True,)))
+        span them all: with some not judged there, they are compared on the judged ones)."""
+        return all(self.judged(regime))
 
     def statistics(self, regime: str = "") -> tuple[np.ndarray, np.ndarray]:
         """(centre, threshold) of a regime ("" or the base regime: the top-level ones), as

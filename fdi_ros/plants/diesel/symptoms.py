@@ -915,7 +915,7 @@ def identify_regime_directions(models: ReferenceModelSet, config: SymptomConfig,
         keep = [i for i, rv in enumerate(rvs) if rv.valid and rv.regime == regime]
         if len(keep) < MIN_EFFECT_SEGMENTS:
             continue
-        judged = config.regimes[regime].get("judged") or (True,) * len(config.names)
+        judged = config.judged(regime)
         Z = np.array([_z(rvs[i].values, config, regime) for i in keep]) / size
         try:
             X = np.array([[feats[i].get(k) for k in inputs] for i in keep])

@@ -31,7 +31,7 @@ def test_a_changed_scenario_makes_the_builders_reference_stale(tmp_path, monkeyp
         f.write_text(f"name: s{i}\n")
     monkeypatch.setattr(identify, "reference_sources", lambda resolve=Path: [str(f) for f in
                                                                             scenarios])
-    digest = identify.sources_digest(scenarios)
+    digest = identify.digest_of(scenarios)
     _reference(tmp_path / "built", digest)
     _reference(tmp_path / "by_hand", None)
     assert wing._reference_current(tmp_path / "built")
@@ -39,7 +39,7 @@ def test_a_changed_scenario_makes_the_builders_reference_stale(tmp_path, monkeyp
     scenarios[1].write_text("name: s1\nseed: 2\n")   # an identification scenario edited
     assert not wing._reference_current(tmp_path / "built")
     assert wing._reference_current(tmp_path / "by_hand")   # not the builder's: kept
-    assert identify.sources_digest(scenarios) != digest
+    assert identify.digest_of(scenarios) != digest
 
 
 def test_hypotheses_on_a_rebuilt_reference_are_rebuilt_with_it(tmp_path, monkeypatch):

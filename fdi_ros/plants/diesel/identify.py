@@ -203,15 +203,15 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
                  threshold_seed: int = THRESHOLD_SEED, mapping=None, config=None,
                  progress: bool = True, figures=None, log=lambda s: None,
                  further_regimes: bool = False, regime_sources=(),
-                 record_sources: bool = False):
+                 sources_digest: str = ""):
     """Identify, save, calibrate the fault-free thresholds; returns (result, symptom config or
     None, report dict). ``data_source`` and ``fault_free``: one source (scenario, bag, CSV) or
     a list of them; each source is a stream of its own (e.g. the EGR-closed identification
     cycle and the part-load passes with the ECU's maps); with ``further_regimes`` every
     operating regime with enough data gets models of its own (:func:`identify_regime_models`),
     else the base regime's only; ``regime_sources``: more streams for the further regimes
-    only (seeds after the data sources'); ``record_sources``: keep a digest of the sources
-    with the models (the bank's set: rebuilt when one of them changes)."""
+    only (seeds after the data sources'); ``sources_digest``: kept with the models (the
+    bank's set, :func:`digest_of` its sources: rebuilt when one of them changes)."""
     import numpy as np
 
     from fdi_ros.plants.diesel.reference import (
@@ -240,10 +240,8 @@ def build_models(data_source, *, out, seed: int = 0, fault_free=DEFAULT_DRIVE,
     out = Path(out)
     res.models.info["further_regimes"] = bool(further_regimes)
     res.models.info["features"] = FEATURES_VERSION
-    if record_sources:
-        ff_list = fault_free if isinstance(fault_free, (list, tuple)) else [fault_free]
-        res.models.info["sources"] = sources_digest(
-            [*sources, *(regime_sources if further_regimes else ()), *ff_list])
+    if sources_digest:
+        res.models.info["sources"] = sources_digest
     res.models.save(out)
     info = res.models.info
     report = {"out": str(out), "n_segments": int(data["n"].size), "n_train": res.n_train,
@@ -293,7 +291,7 @@ THRESHOLD_SOURCES = (DEFAULT_DRIVE, DEFAULT_CALIBRATION_DRIVE, DEFAULT_CALIBRATI
                      DEFAULT_CALIBRATION_TIPS)
 
 
-def sources_digest(sources) -> str:
+def digest_of(sources) -> str:
     """Digest of the identification and calibration sources a model set was built from (file
     names and contents; other sources by their name): a set is rebuilt when one changes."""
     import hashlib
@@ -324,7 +322,7 @@ def build_reference_models(out, *, seed: int = 0, progress: bool = True, log=lam
                         threshold_seed=THRESHOLD_SEED, progress=progress, log=log,
                         further_regimes=True,
                         regime_sources=[str(resolve(s)) for s in REGIME_SOURCES],
-                        record_sources=True)
+                        sources_digest=digest_of(reference_sources(resolve)))
 
 
 def identification_figures(res, data, outdir) -> list[Path]:

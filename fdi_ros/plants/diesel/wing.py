@@ -174,7 +174,7 @@ def _reference_current(d: Path, resolve: Callable[[str], Any] = Path) -> bool:
     bank builder made, on its identification and calibration scenarios as they are now: one
     identified by hand on other data is kept) and carries its validity region with today's
     actuator tolerances (sets identified before are rebuilt)."""
-    from fdi_ros.plants.diesel.identify import FEATURES_VERSION, reference_sources, sources_digest
+    from fdi_ros.plants.diesel.identify import FEATURES_VERSION, digest_of, reference_sources
     from fdi_ros.plants.diesel.reference import ACTUATOR_TOL
 
     if not all((d / f).exists() for f in REFERENCE_FILES):
@@ -189,7 +189,7 @@ def _reference_current(d: Path, resolve: Callable[[str], Any] = Path) -> bool:
     info = manifest.get("info", {})
     if not validity or not info.get("regime") or not info.get("further_regimes") \
             or info.get("features") != FEATURES_VERSION \
-            or info.get("sources", "") not in ("", sources_digest(reference_sources(resolve))):
+            or info.get("sources", "") not in ("", digest_of(reference_sources(resolve))):
         return False
     tol = {r.get("name"): r.get("tol") for r in validity.get("ranges", [])}
     return all(tol.get(k, v) == v for k, v in ACTUATOR_TOL.items())

@@ -382,10 +382,11 @@ class BatchedModel:
                              f"in regime {regime[i]!r}")
         rows = np.flatnonzero(valid)
         G = np.full((rows.size, len(cfg.names)), np.nan)
-        reg = np.array(regime, dtype=object)[rows] if rows.size else np.array([], dtype=object)
+        reg = np.array(regime, dtype=object)[rows]
         for name in set(reg.tolist()):
             # each regime's effect maps over their own inputs
-            sub = rows[reg == name]
+            at = np.flatnonzero(reg == name)   # positions in rows (and G)
+            sub = rows[at]
             inputs = h.inputs_for(name)
             cols = [self.stream.col(k) for k in inputs]
             if all(have[k0:][sub].all() for _, have in cols):
@@ -401,7 +402,7 @@ class BatchedModel:
                 keep_a = np.asarray(keep, dtype=np.intp)
             if keep_a.size:
                 X = np.column_stack([c[0][k0:][sub[keep_a]] for c in cols])
-                G[np.searchsorted(rows, sub[keep_a])] = h.direction(X, name)
+                G[at[keep_a]] = h.direction(X, name)
         fin = np.all(np.isfinite(G), axis=1)
         for bad in rows[~fin]:
             if valid[bad]:

@@ -465,16 +465,29 @@ def _verdict(findings: list[Finding], table: list[Candidate], alpha: float = 0.0
                              for a in suspect.alternatives[:3])
             msg += (f"; the suspect (the best explanation, over every residual that checks "
                     f"it, fitted on every sample) is {suspect.label} on {suspect.channel} "
-                    f"({_brief(suspect.params)}), not significant"
+                    f"({format_params(suspect.params)}), not significant"
                     + (f"; tied: {ties}" if ties else ""))
     return "consistent", msg
 
 
-def _brief(params: dict[str, Any]) -> str:
-    """The scalar parameters of a fitted explanation, briefly (``gain 0.925, onset_s 125.1``)."""
-    out = [f"{k} {v:.4g}" for k, v in params.items()
-           if isinstance(v, (int, float)) and not isinstance(v, bool)]
-    return ", ".join(out[:4]) or "no scalar parameters"
+def format_params(p: dict[str, Any]) -> str:
+    """A fitted explanation's parameters for a message or report (``gain=0.925;
+    onset_s=125.1``), without the internal scalings of its regressors."""
+    out = []
+    for k, v in p.items():
+        if k in ("a", "b", "center", "scale", "sq_mean", "z_range", "t_ref_s", "cd",
+                 "cda_mm2") or v is None:
+            continue
+        if isinstance(v, float):
+            out.append(f"{k}={v:.4g}")
+        elif isinstance(v, dict):
+            out.append(f"{k}=" + ", ".join(f"{a} in [{lo:.4g}, {hi:.4g}]"
+                                            for a, (lo, hi) in v.items()))
+        elif isinstance(v, list):
+            out.append(f"{k}=[" + ", ".join(f"{x:.3g}" for x in v) + "]")
+        else:
+            out.append(f"{k}={v}")
+    return "; ".join(out)
 
 
 def _n_blocks(ctx: ChannelContext, cfg: DiscrepancyConfig, info: dict[str, Any]) -> int | None:
@@ -945,11 +958,8 @@ def _grow_chain(views: dict[str, _Channel], cfg: DiscrepancyConfig,
                 # nothing significant: the best explanation (over every residual where others
                 # check it), fitted on every valid sample, is reported as the suspect (not a
                 # finding)
-                for c in views.values():
-                    c.ctx.cache.clear()
-                    c.ctx.folds, c.ctx.fold_ids = None, {}
-                params = _fit_in(views, h, {v: c.ctx.yhat for v, c in views.items()},
-                                 {v: c.ok for v, c in views.items()}, refine=True)[0]
+                oks = {v: c.ok for v, c in views.items()}
+                params = _fit_in(views, h, _fit_all(views, chain, oks), oks, refine=True)[0]
                 suspect.append(_finding(h, choice, step, alternatives, significant=False,
                                         params=params))
             break

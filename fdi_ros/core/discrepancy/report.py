@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from fdi_ros.core.discrepancy.context import build_contexts
-from fdi_ros.core.discrepancy.engine import Candidate, DiscrepancyResult
+from fdi_ros.core.discrepancy.engine import Candidate, DiscrepancyResult, format_params
 from fdi_ros.core.discrepancy.model import ExtendedModel
 from fdi_ros.core.measured import Measured, segment_means
 
@@ -28,24 +28,6 @@ def _save(fig: Any, out: Path, name: str, caption: str, figs: list[tuple[str, st
     fig.savefig(out / name, dpi=90)
     plt.close(fig)
     figs.append((name, caption))
-
-def _fmt_params(p: dict[str, Any]) -> str:
-    out = []
-    for k, v in p.items():
-        if k in ("a", "b", "center", "scale", "sq_mean", "z_range", "t_ref_s", "cd",
-                 "cda_mm2") or v is None:
-            continue
-        if isinstance(v, float):
-            out.append(f"{k}={v:.4g}")
-        elif isinstance(v, dict):
-            out.append(f"{k}=" + ", ".join(f"{a} in [{lo:.4g}, {hi:.4g}]"
-                                            for a, (lo, hi) in v.items()))
-        elif isinstance(v, list):
-            out.append(f"{k}=[" + ", ".join(f"{x:.3g}" for x in v) + "]")
-        else:
-            out.append(f"{k}={v}")
-    return "; ".join(out)
-
 
 def error_map(region: dict[str, np.ndarray], resid: np.ndarray, bins: int = 8
               ) -> tuple[list[str], list[np.ndarray], np.ndarray, np.ndarray]:
@@ -290,7 +272,7 @@ def write_report(out_dir: str | Path, data: Measured, baseline: Any, extended: E
              "(held-out) | gain | p (adj.) |", "|---|---|---|---|---|---|---|---|"]
     for f in result.findings:
         lines.append(f"| {f.rank} | {f.label} | {f.channel} ({f.view}) | "
-                     f"{_fmt_params(f.params)} | "
+                     f"{format_params(f.params)} | "
                      f"{f.rmse_before:.4g} | {f.rmse_after:.4g} | {f.gain_pct:.1f} % | "
                      f"{f.p_adjusted:.2g} |")
     if not result.findings:
@@ -298,23 +280,23 @@ def write_report(out_dir: str | Path, data: Measured, baseline: Any, extended: E
     sus = result.suspect
     if sus is not None:
         lines.append(f"\nNot significant, but the best explanation over every residual: "
-                     f"**{sus.label}** on {sus.channel} ({_fmt_params(sus.params)}), held-out "
+                     f"**{sus.label}** on {sus.channel} ({format_params(sus.params)}), held-out "
                      f"gain {sus.gain_pct:.1f} % on {sus.shown_on}, p (adj.) "
                      f"{sus.p_adjusted:.2g}; moves {', '.join(sus.residuals)}. The data cannot "
                      "tell it from: " + ("; ".join(f"{a['label']} on {a['channel']} "
-                                                   f"({_fmt_params(a['params'])})"
+                                                   f"({format_params(a['params'])})"
                                                    for a in sus.alternatives) or "none")
                      + ". More data after the change, or where it acts most, would decide.")
     for f in result.findings:
         for a in f.alternatives:
             if "separate_by" in a:  # a tie with another sensor: why, and what separates
                 lines.append(f"\nFinding {f.rank} ({f.label} on {f.channel}) is **tied** with "
-                             f"**{a['label']}** ({_fmt_params(a['params'])}): {a['why']}. "
+                             f"**{a['label']}** ({format_params(a['params'])}): {a['why']}. "
                              f"Would separate them: {a['separate_by']}.")
                 continue
             lines.append(f"\nFinding {f.rank} ({f.label}) is indistinguishable on the held-out "
                          f"blocks from **{a['label']}** (gain {a['gain_pct']:.1f} %): "
-                         f"{_fmt_params(a['params'])}.")
+                         f"{format_params(a['params'])}.")
     lines += ["", "Held-out scheme: contiguous time blocks, each held out in turn (guard bands "
               "around it); significance: Wilcoxon signed-rank over the blockwise held-out MSE, "
               "Bonferroni over the channel's own candidates (the errors of the model's input "

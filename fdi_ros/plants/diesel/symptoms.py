@@ -858,27 +858,16 @@ def identify_fault_hypothesis(models: ReferenceModelSet, config: SymptomConfig,
     back pressure, i.e. the load, not only speed and boost density). ``regime_features``:
     faulty data of the further regimes (the EGR-open passes), whose effect maps
     :func:`identify_regime_directions` identifies."""
-    from fdi_ros.core.lolimot import Lolimot
-
     if not size > 0:
         raise ValueError("fault size must be positive")
     feats = [fv for fv in features if fv.t_start >= t_from]
     rvs = stream_residuals(models, feats, config=config)
     regimes = (models.regime,) if regimes is None else tuple(regimes)
     keep = [i for i, rv in enumerate(rvs) if rv.valid and rv.regime in regimes]
-    if len(keep) < 200:
+    if len(keep) < MIN_EFFECT_SEGMENTS:
         raise ValueError(f"only {len(keep)} valid faulty segments: too few for {fault}")
-    Z = np.array([_z(rvs[i].values, config, rvs[i].regime) for i in keep]) / size
-    try:
-        X = np.array([[feats[i].get(k) for k in inputs] for i in keep])
-    except KeyError as exc:
-        raise ValueError(f"fault-hypothesis input missing from the features: {exc}") from None
-    directions = {}
-    for name in residual_names:
-        j = config.names.index(name)
-        m = Lolimot(max_models=max_models, min_samples_per_model=50)
-        m.fit(X, Z[:, j], input_names=tuple(inputs), output_name=f"g_{name}")
-        directions[name] = m
+    directions = _fit_effect_maps(feats, rvs, keep, config, size=size, inputs=inputs,
+                                  names=residual_names, max_models=max_models)
     further = identify_regime_directions(models, config, regime_features, size=size,
                                          t_from=t_from, max_models=max_models) \
         if regime_features is not None else {}
@@ -903,8 +892,6 @@ def identify_regime_directions(models: ReferenceModelSet, config: SymptomConfig,
     """Effect maps of the further (quasi-stationary) regimes in faulty ``features`` (the fault
     of ``size`` present from ``t_from`` on): per regime with at least
     :data:`MIN_EFFECT_SEGMENTS` valid segments, one LOLIMOT map per residual judged there."""
-    from fdi_ros.core.lolimot import Lolimot
-
     feats = [fv for fv in features if fv.t_start >= t_from]
     rvs = stream_residuals(models, feats, config=config)
     out: dict[str, dict[str, Lolimot]] = {}
@@ -915,20 +902,32 @@ def identify_regime_directions(models: ReferenceModelSet, config: SymptomConfig,
         keep = [i for i, rv in enumerate(rvs) if rv.valid and rv.regime == regime]
         if len(keep) < MIN_EFFECT_SEGMENTS:
             continue
-        judged = config.judged(regime)
-        Z = np.array([_z(rvs[i].values, config, regime) for i in keep]) / size
-        try:
-            X = np.array([[feats[i].get(k) for k in inputs] for i in keep])
-        except KeyError as exc:
-            raise ValueError(f"effect-map input missing from the features: {exc}") from None
-        maps = {}
-        for j, name in enumerate(config.names):
-            if judged[j]:
-                m = Lolimot(max_models=max_models, min_samples_per_model=50)
-                m.fit(X, Z[:, j], input_names=tuple(inputs), output_name=f"g_{name}")
-                maps[name] = m
-        out[regime] = maps
+        judged = [name for name, j in zip(config.names, config.judged(regime)) if j]
+        out[regime] = _fit_effect_maps(feats, rvs, keep, config, size=size, inputs=inputs,
+                                       names=judged, max_models=max_models)
     return out
+
+
+def _fit_effect_maps(feats: Sequence[FeatureVector], rvs: Sequence[ResidualVector],
+                     keep: Sequence[int], config: SymptomConfig, *, size: float,
+                     inputs: Sequence[str], names: Sequence[str], max_models: int
+                     ) -> dict[str, Lolimot]:
+    """One LOLIMOT effect map per residual of ``names``: its change in units of its regime's
+    thresholds per unit fault size, over ``inputs``, on the faulty segments ``keep``."""
+    from fdi_ros.core.lolimot import Lolimot
+
+    Z = np.array([_z(rvs[i].values, config, rvs[i].regime) for i in keep]) / size
+    try:
+        X = np.array([[feats[i].get(k) for k in inputs] for i in keep])
+    except KeyError as exc:
+        raise ValueError(f"fault-hypothesis input missing from the features: {exc}") from None
+    maps = {}
+    for name in names:
+        m = Lolimot(max_models=max_models, min_samples_per_model=50)
+        m.fit(X, Z[:, config.names.index(name)], input_names=tuple(inputs),
+              output_name=f"g_{name}")
+        maps[name] = m
+    return maps
 
 
 def _register() -> None:

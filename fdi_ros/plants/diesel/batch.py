@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from fdi_ros.core.sliding import window_ranges, window_reduce
-from fdi_ros.core.symptoms import TOO_FAST, TRANSIENT_SUFFIX, effect_values, rate_status
+from fdi_ros.core.symptoms import TOO_FAST, effect_values, rate_status
 from fdi_ros.core.types import FeatureVector, ResidualVector
 from fdi_ros.plants.diesel.ecu import (
     ACTUATOR_MOVE,
@@ -35,6 +35,7 @@ from fdi_ros.plants.diesel.ecu import (
     actuator_status,
 )
 from fdi_ros.plants.diesel.plant import TOO_FAST_HOLD
+from fdi_ros.plants.diesel.reference import transient_regime
 
 
 @dataclass(frozen=True)
@@ -290,7 +291,7 @@ class BatchedModel:
             transient[i] = True
         if c.transients == "regime":
             for i in np.flatnonzero(transient):
-                regime[i] = regime[i] + TRANSIENT_SUFFIX
+                regime[i] = transient_regime(regime[i])
         else:
             for i in np.flatnonzero(transient):
                 valid[i] = False

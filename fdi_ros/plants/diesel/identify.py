@@ -291,12 +291,18 @@ THRESHOLD_SOURCES = (DEFAULT_DRIVE, DEFAULT_CALIBRATION_DRIVE, DEFAULT_CALIBRATI
                      DEFAULT_CALIBRATION_TIPS)
 
 
+# The structure of the sets the builder makes (in the digest: a set of another structure is
+# rebuilt as a changed source would make it): 2, the EGR-open pulsation-ratio regime.
+BUILDER_VERSION = "reference-sets-2"
+
+
 def digest_of(sources) -> str:
     """Digest of the identification and calibration sources a model set was built from (file
-    names and contents; other sources by their name): a set is rebuilt when one changes."""
+    names and contents; other sources by their name; the builder's version): a set is rebuilt
+    when one changes."""
     import hashlib
 
-    h = hashlib.sha256()
+    h = hashlib.sha256(BUILDER_VERSION.encode() + b"\0")
     for src in sources:
         path = Path(str(src))
         h.update(path.name.encode() + b"\0")

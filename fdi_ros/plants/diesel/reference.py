@@ -262,6 +262,14 @@ class ReferenceModelSet:
                 break
             inside = ms.validity.contains(data, size) if ms.validity is not None else \
                 np.ones(size, dtype=bool)
+            if ms.info.get(WHERE_COVERED) and (free & inside).any():
+                # a regime tried only where its maps cover the segment (else the next one)
+                rows = np.flatnonzero(free & inside)
+                sub = {k: np.broadcast_to(np.atleast_1d(np.asarray(v, dtype=float)),
+                                          (size,))[rows] for k, v in data.items()}
+                inside = inside.copy()
+                inside[rows] = ms.predict(sub["n"], sub["rho2"], phases=False, extra={
+                    k: sub[k] for k in ms.extra_inputs if k in sub})[1]
             out[free & inside] = j
         return out
 
@@ -277,7 +285,10 @@ class ReferenceModelSet:
     def _one(self, name: str, X: np.ndarray, use_tables: bool):
         if use_tables and name in self.tables:
             return self.tables[name].evaluate(X)
-        return self.models[name].predict(X), np.ones(X.shape[0], dtype=bool)
+        m = self.models[name]
+        # a gray-box map with a coverage of its own (the EGR-open pulsation ratio) says it
+        rows = getattr(m, "valid_rows", None)
+        return m.predict(X), (rows(X) if rows is not None else np.ones(X.shape[0], dtype=bool))
 
     def _matrix(self, n, rho2, extra: Mapping[str, object] | None) -> np.ndarray:
         """Model input rows; an extra input not given takes the low end of its identified
@@ -385,9 +396,10 @@ class ReferenceModelSet:
         return cls._load(d)
 
     @classmethod
-    def _load(cls, d: Path, base_eta: Lolimot | None = None) -> ReferenceModelSet:
-        """``base_eta``: for a further regime, the base regime's eta_V map (an EGR-open
-        regime's eta_V is a flow model over it, :class:`.egrflow.EgrFlowEta`)."""
+    def _load(cls, d: Path, base: Mapping[str, Lolimot] | None = None) -> ReferenceModelSet:
+        """``base``: for a further regime, the base regime's maps (an EGR-open regime's
+        eta_V is a flow model over its eta_V map, :class:`.egrflow.EgrFlowEta`, and its
+        pulsations may be ratios to its pulsation maps, :mod:`.pulsation`)."""
         mf = d / MANIFEST
         if not mf.exists():
             raise FileNotFoundError(f"no reference model set in {d} (missing {MANIFEST}); "
@@ -400,17 +412,33 @@ class ReferenceModelSet:
             raise ValueError(f"{mf}: malformed manifest: {exc}") from exc
         validity = manifest.get("validity")
         inputs = tuple(manifest.get("inputs", INPUTS))
+        base_eta = None if base is None else base.get("eta_v")
         if base_eta is not None and "eta_v" in models:
             from fdi_ros.plants.diesel.egrflow import EgrFlowEta
 
             models["eta_v"] = EgrFlowEta.load_beside(d / "eta_v.npz", models["eta_v"],
                                                      base_eta, inputs)
+        if base is not None and manifest.get("info", {}).get(WHERE_COVERED):
+            models = _with_ratio_maps(models, base, inputs, mf)
         return cls(models=models, tables=tables,
                    phase_centre={k: float(v) for k, v in manifest["phase_centre"].items()},
                    info=manifest.get("info", {}), inputs=inputs,
                    validity=ValidityRegion.from_dict(validity) if validity else None,
-                   regimes=[cls._load(d / "regimes" / str(r), models.get("eta_v"))
+                   regimes=[cls._load(d / "regimes" / str(r), models)
                             for r in manifest.get("regimes") or []])
+
+
+def _with_ratio_maps(models: dict[str, Any], base: Mapping[str, Any], inputs: tuple[str, ...],
+                     manifest: Path) -> dict[str, Any]:
+    """A covered regime's loaded maps with its pulsations as ratios to the base maps."""
+    from fdi_ros.plants.diesel.pulsation import HARMONICS, PulsationRatio, RatioContext
+
+    names = [k for pair in HARMONICS.values() for k in pair]
+    if not hasattr(models.get("eta_v"), "flow") or any(k not in models for k in names):
+        raise ValueError(f"{manifest}: a pulsation-ratio regime needs an EGR flow model and "
+                         f"ratio maps of {names}")
+    ctx = RatioContext(models["eta_v"], base, {k: models[k] for k in names}, inputs)
+    return {**models, **{k: PulsationRatio(ctx, k) for k in names}}
 
 
 @dataclass(frozen=True)
@@ -633,6 +661,22 @@ OPEN_EGR_INPUTS = ("fuel", "vgt", "T2")
 TEMPERATURE_SETTLED = 3.0
 # The column marking the segments quasi-stationary for the exhaust side (egrflow.settled).
 SETTLED = "egr_settled"
+# Info flag of a regime tried only where its maps cover a segment (the EGR-open regime with
+# its pulsations relative to the base maps, module pulsation: where they do not cover it, the
+# next regime judges eta_V alone)
+WHERE_COVERED = "where_covered"
+# The name of such a regime: its parent's and this suffix (its transients are the parent's)
+PULSATION_SUFFIX = "+pulsation"
+
+
+def transient_regime(regime: str) -> str:
+    """The regime of a transient segment of ``regime``: ``<regime>/transient``, a covered
+    regime's its parent's (a transient is judged as the parent judges it)."""
+    from fdi_ros.core.symptoms import TRANSIENT_SUFFIX
+
+    return regime.removesuffix(PULSATION_SUFFIX) + TRANSIENT_SUFFIX
+
+
 # The column marking segments for the further regimes only (1: not in the base regime's maps)
 REGIMES_ONLY = "regimes_only"
 # Fewest quasi-stationary segments an EGR-open regime needs for its flow model.
@@ -816,6 +860,17 @@ def identify_regime_models(data: Mapping[str, np.ndarray], *,
             # this regime is judged on eta_V alone
             r.models.info["judged_outputs"] = ["eta_v"]
             flows.append((stored_air_removed(every[name]), flow[0], r.models.inputs))
+            if not closed:
+                # ... and where the base maps cover it, on the pulsations too: relative to
+                # the base maps (module pulsation; the ports' loss with the flaps closed
+                # changes the pulsation's source, which the base maps do not describe)
+                covered = _pulsation_regime(d, base, r.models, cfg)
+                if covered is not None:
+                    base.regimes.append(covered[0])
+                    base.info["regime_nrmse_test"][covered[0].regime] = covered[1]
+                    log(f"[identify] regime {covered[0].regime}: {covered[2]} segments within "
+                        "the base maps, held-out NRMSE " + ", ".join(
+                            f"{k} {v:.3f}" for k, v in covered[1].items()))
         base.regimes.append(r.models)
         base.info["regime_nrmse_test"][name] = r.nrmse_test
         base.info["regime_segments"][name] = int(d["n"].size)
@@ -904,6 +959,55 @@ def _egr_flow_map(d: Mapping[str, np.ndarray], base: ReferenceModelSet,
     score = nrmse(d["eta_v"][te][ok], m.predict(X[te][ok]))
     return m, score, {"segments": f.n_segments, "rmse": round(f.rmse, 5), "nfev": f.nfev,
                       "success": f.success}
+
+
+def _pulsation_regime(d: Mapping[str, np.ndarray], base: ReferenceModelSet,
+                      regime: ReferenceModelSet, cfg: IdentificationConfig
+                      ) -> tuple[ReferenceModelSet, dict[str, float], int] | None:
+    """The EGR-open regime ``regime`` (its eta_V an EGR flow model) judged on the pulsations
+    too, where the base maps cover a segment: the harmonics relative to the base maps' by
+    ratio maps of (n, x_egr) (:mod:`.pulsation`), identified on its segments of ``d`` within
+    the base maps' coverage. Returns the set, the held-out NRMSE per output (the harmonics
+    themselves) and the segments it was identified on; None with fewer than
+    :data:`MIN_REGIME_SEGMENTS` of them."""
+    from fdi_ros.plants.diesel import pulsation as pu
+
+    flow = regime.models["eta_v"]
+    X = np.column_stack([d[k] for k in regime.inputs])
+    n, rho2 = d["n"], d["rho2"]
+    inside = base.models["eta_v"].in_region(np.column_stack([n, rho2])) \
+        & np.all(np.isfinite(X), axis=1)
+    rows = np.flatnonzero(inside)
+    if rows.size < MIN_REGIME_SEGMENTS:
+        return None
+    ctx = pu.RatioContext(flow, base.models, {}, regime.inputs)
+    sub = {k: np.asarray(v)[rows] for k, v in d.items()}
+    ref = pu.base_harmonics(base.models, sub["n"], sub["rho2"])
+    R = np.column_stack([sub["n"], ctx.share(X[rows])])
+    targets = pu.ratio_targets(sub, ref)
+    min_amp = base.info.get("phase_min_amp", {})
+    strong = {ph: ref[amp] >= float(min_amp.get(ph, -np.inf))
+              for amp, ph in pu.HARMONICS.values()}
+    tr, va, te = split_blocks(rows.size, block=cfg.block, seed=cfg.seed)
+    maps = pu.fit_ratio_maps(R, targets, np.sort(np.r_[tr, va]), strong, np.arange(rows.size),
+                             coverage_min_count=cfg.coverage_min_count)
+    ctx = pu.RatioContext(flow, base.models, maps, regime.inputs)
+    models: dict[str, Any] = {"eta_v": flow, **{k: pu.PulsationRatio(ctx, k) for k in maps}}
+    name = regime.regime + PULSATION_SUFFIX
+    info = {k: v for k, v in regime.info.items() if k not in ("nrmse_test", "judged_outputs")}
+    info.update(regime=name, phase_min_amp=dict(min_amp), ratio_inputs=list(pu.RATIO_INPUTS),
+                judged_outputs=list(pu.JUDGED), **{WHERE_COVERED: True})
+    out = ReferenceModelSet(models=models, tables={}, phase_centre={}, info=info,
+                            inputs=regime.inputs, validity=regime.validity)
+    pred = ctx.evaluate(X[rows][te])
+    score = {}
+    for amp, ph in pu.HARMONICS.values():
+        ok = pred["valid"] & np.isfinite(sub[amp][te])
+        score[amp] = nrmse(sub[amp][te][ok], pred[amp][ok])
+        e = wrap_phase(sub[ph][te] - pred[ph], 0.0)[ok & strong[ph][te]]
+        score[ph] = float(np.sqrt(np.mean(e ** 2)) / np.std(sub[ph][te][ok & strong[ph][te]]))
+    info["nrmse_test"] = score
+    return out, score, int(rows.size)
 
 
 def _table(m: Lolimot, bps, inputs: tuple[str, ...], name: str) -> LookupTable | None:

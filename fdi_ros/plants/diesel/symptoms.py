@@ -55,6 +55,7 @@ from fdi_ros.plants.diesel.reference import (
     OUTPUTS,
     TEMPERATURE_SETTLED,
     ReferenceModelSet,
+    transient_regime,
     wrap_phase,
 )
 
@@ -468,7 +469,7 @@ class QuasiStationarity:
         j = c.names.index("r_eta") if "r_eta" in c.names else None
         if j is not None and c.storage_coeff:
             r[j] += c.storage_coeff * dp / (fv.get("n") * fv.get("p2"))
-        return r, valid, status, regime + TRANSIENT_SUFFIX if why else regime
+        return r, valid, status, transient_regime(regime) if why else regime
 
 
 def _finish(fv: FeatureVector, r: np.ndarray, valid: bool, status: str, regime: str,

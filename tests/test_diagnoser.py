@@ -163,6 +163,43 @@ def test_faults_the_symptoms_show_compete_and_a_close_runner_up_blocks_isolation
             assert d.state == "detected" and d.extra.get("ambiguous"), d
 
 
+def test_in_a_hypothesis_regime_the_hypotheses_decide_against_the_table(tmp_path):
+    """In a regime listed in ``symptoms.hypothesis_regimes`` (the table was measured
+    elsewhere: the diesel's flaps stuck closed show the restriction's row with the EGR valve
+    open) every fault is a candidate: the best hypothesis isolates, whatever the table says,
+    with the ambiguity margin; in another regime the table's exact match is the candidate.
+    Norms drawn at random; a list of non-strings is refused."""
+    from fdi_ros.core.diagnoser import AMBIGUITY
+
+    cfg_file = tmp_path / "config" / "g.yaml"
+    cfg_file.parent.mkdir()
+    sym = "  symptoms: {config: {centre: [0], threshold: [1], scale: [1], names: [r]}, "
+    cfg_file.write_text(CONFIG.replace("  bank:\n", sym + "hypothesis_regimes: [open]}\n"
+                                       "  bank:\n"))
+    table = FaultSymptomTable(("s_1", "s_2"), {"a": (1, 1), "b": (-1, 0)})   # "-" is b's
+    rng = np.random.default_rng()
+    clear = float(rng.uniform(0.1, 0.9 * AMBIGUITY))
+    close = float(rng.uniform(1.05 * AMBIGUITY, 1.0))
+    for regime, ratio, want in (("open", clear, ("a",)), ("open", close, ()),
+                                ("", clear, ("b",))):
+        diag = Diagnoser(load_graph_config(cfg_file))
+        assert diag.hypothesis_regimes == {"open"}
+        diag.table = table
+        diag.reference_id = "nominal"
+        diag.symptom_gen = _Sym(regime, False, (-1, 0))
+        norms = {"nominal": 5.0, "a": 3.0 * ratio, "b": 3.0}
+        for k in range(25):   # symptoms from 1 s, T0 = 0.5 s
+            t = 0.1 * k
+            res = {m: ResidualVector(m, 0, t, True, "", ("r",), ("1",), np.array([3.0]), v)
+                   for m, v in norms.items()}
+            d = diag.update(k, t, res).diagnosis
+        assert d.isolated_faults == want, (regime, ratio, d)
+    cfg_file.write_text(CONFIG.replace("  bank:\n", sym + "hypothesis_regimes: [1]}\n"
+                                       "  bank:\n"))
+    with pytest.raises(ValueError, match="hypothesis_regimes"):
+        Diagnoser(load_graph_config(cfg_file))
+
+
 def test_judged_fault_free_is_no_fault_without_valid_hypotheses(tmp_path):
     """The reference model's symptoms valid and quiet, every hypothesis "not valid here" (the
     diesel's EGR valve open: the hypotheses' maps do not hold there): the diagnosis is

@@ -94,6 +94,13 @@ class Diagnoser:
         self.explain_norm = float(sym.get("explain_norm", math.inf))
         # the best hypothesis isolates only with a norm below this share of the runner-up's
         self.ambiguity = float(sym.get("ambiguity", AMBIGUITY))
+        # regimes where the table's signatures (measured elsewhere) do not hold: there every
+        # fault is a candidate and the bank's hypotheses, identified in the regime, decide
+        regimes = sym.get("hypothesis_regimes", [])
+        if not isinstance(regimes, list) or not all(isinstance(r, str) for r in regimes):
+            raise ValueError(f"{cfg.path}: symptoms.hypothesis_regimes must be a list of "
+                             "regime names")
+        self.hypothesis_regimes = frozenset(regimes)
         self._candidates: dict[tuple[int, ...], tuple[str, ...]] = {}
         self._partial: dict[tuple[Any, ...], tuple[str, ...]] = {}
 
@@ -151,6 +158,9 @@ class Diagnoser:
                 feed = {}
             active = symptoms is not None and symptoms.valid and any(symptoms.levels)
             if symptoms is not None and active and self.table is not None and \
+                    symptoms.regime in self.hypothesis_regimes:
+                candidates = tuple(self.table)
+            elif symptoms is not None and active and self.table is not None and \
                     not self.symptom_gen.config.judges_all(symptoms.regime):
                 candidates = self._partial_candidates(symptoms)
             elif symptoms is not None and active and self.table is not None:

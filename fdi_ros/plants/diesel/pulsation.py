@@ -41,6 +41,9 @@ RATIO_INPUTS = ("n", "x_egr")
 # the faults move it by at most 3.5 deg where the valve and the flaps are open, but for
 # those the amplitudes see anyway (flaps stuck closed, valve stuck open).
 JUDGED = ("eta_v", "maf_amp", "p2_amp", "p2_phase")
+# Fewest identification segments a cell of the ratio maps' (n, x_egr) coverage grid needs to
+# count as identified (16 x 16 cells)
+MIN_CELL_SEGMENTS = 30
 PERIOD_DEG = 180.0
 
 
@@ -134,7 +137,8 @@ class PulsationRatio:
 
 def fit_ratio_maps(R: np.ndarray, targets: Mapping[str, np.ndarray], fit: np.ndarray,
                    strong: Mapping[str, np.ndarray], region: np.ndarray, *,
-                   max_models: int = 12, coverage_min_count: int = 3) -> dict[str, Any]:
+                   max_models: int = 12, coverage_min_count: int = MIN_CELL_SEGMENTS
+                   ) -> dict[str, Any]:
     """LOLIMOT ratio maps over ``R`` (columns :data:`RATIO_INPUTS`) fitted on the rows
     ``fit``, a phase's only where its harmonic is strong enough to have one (``strong[phase]``,
     a flag per row); the coverage (kept by the MAF amplitude's map) from the rows ``region``

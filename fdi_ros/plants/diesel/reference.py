@@ -989,8 +989,7 @@ def _pulsation_regime(d: Mapping[str, np.ndarray], base: ReferenceModelSet,
     strong = {ph: ref[amp] >= float(min_amp.get(ph, -np.inf))
               for amp, ph in pu.HARMONICS.values()}
     tr, va, te = split_blocks(rows.size, block=cfg.block, seed=cfg.seed)
-    maps = pu.fit_ratio_maps(R, targets, np.sort(np.r_[tr, va]), strong, np.arange(rows.size),
-                             coverage_min_count=cfg.coverage_min_count)
+    maps = pu.fit_ratio_maps(R, targets, np.sort(np.r_[tr, va]), strong, np.arange(rows.size))
     ctx = pu.RatioContext(flow, base.models, maps, regime.inputs)
     models: dict[str, Any] = {"eta_v": flow, **{k: pu.PulsationRatio(ctx, k) for k in maps}}
     name = regime.regime + PULSATION_SUFFIX

@@ -233,7 +233,8 @@ class EgrFlowEta:
         X = np.atleast_2d(np.asarray(X, dtype=float))
         return {k: X[:, self.inputs.index(k)] for k in INPUTS}
 
-    def _flows(self, X: np.ndarray) -> dict[str, np.ndarray]:
+    def flows_of(self, X: np.ndarray) -> dict[str, np.ndarray]:
+        """:meth:`EgrFlowModel.flows` at the rows ``X`` (the last rows' are kept)."""
         X = np.atleast_2d(np.asarray(X, dtype=float))
         key, last = (X.shape, X.tobytes()), self._last
         if last is not None and last[0] == key:
@@ -244,7 +245,7 @@ class EgrFlowEta:
         return f
 
     def predict(self, X: np.ndarray) -> np.ndarray:
-        f = self._flows(X)
+        f = self.flows_of(X)
         return np.asarray((f["m_cyl"] - f["m_egr"]) / f["m_th"])
 
     def in_region(self, X: np.ndarray) -> np.ndarray:
@@ -256,7 +257,7 @@ class EgrFlowEta:
         return np.abs(self._valve_dp(X)) >= BALANCED_PA
 
     def _valve_dp(self, X: np.ndarray) -> np.ndarray:
-        f = self._flows(X)
+        f = self.flows_of(X)
         return np.asarray(f["p3"] - f["p2"])
 
     def outside(self, X: np.ndarray) -> list[str]:

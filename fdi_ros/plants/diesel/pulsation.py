@@ -7,18 +7,24 @@ the source is the same charge at the same (n, rho2): the EGR-closed map's. What 
 the path: the valve is a shunt at the manifold that takes part of the pulsating flow, and the
 fresh air's mean flow, which sets the air path's resistances, is smaller by the recirculated
 share. So the EGR-open harmonic is the EGR-closed one times a transfer ratio of the speed
-(the frequency) and the recirculated share of the charge ``x_egr = m_egr / m_cyl``:
+(the frequency), the recirculated share of the charge ``x_egr = m_egr / m_cyl`` and the
+valve's acoustic admittance relative to the cylinders', ``y_egr = (m_egr / 2 |p3 - p2|) /
+(m_cyl / p2) = x_egr p2 / (2 |p3 - p2|)`` (a linearised orifice: a wide-open valve nearly
+balanced is a large shunt at the manifold; |p3 - p2| at least 1 kPa, where the flow model
+holds):
 
-    X_open(n, rho2, ...) = X_closed(n, rho2) * H(n, x_egr),
-    log |H| and arg H: LOLIMOT maps of (n, x_egr), the share from the EGR flow model
-    (module ``egrflow``: the exhaust side's physics, which no sensor gives).
+    X_open(n, rho2, ...) = X_closed(n, rho2) * H(n, x_egr, log y_egr),
+    log |H| and arg H: LOLIMOT maps, x_egr and p3 from the EGR flow model (module
+    ``egrflow``: the exhaust side's physics, which no sensor gives).
 
 Maps of the harmonics themselves over the six inputs the EGR flow needs (n, rho2, egr, fuel,
 vgt, T2) learn the pulsation along the identification's passes only and miss a drive between
-them (held-out NRMSE 0.2-0.9 on a drive they never saw); the ratio over the two physical
+them (held-out NRMSE 0.2-0.9 on a drive they never saw); the ratio over the physical
 inputs carries over (README). It is valid where the EGR-closed maps are (their (n, rho2)
-coverage) and its own (n, x_egr) coverage holds: elsewhere the EGR-open regime is judged on
-eta_V alone.
+coverage), its own (n, x_egr) coverage holds and the admittance lies within the identified
+range (a random fault-free point with the valve at 0.69 near full load, 2 kPa from balance,
+had log y_egr 2.28 against at most 1.84 in the passes, and its p2 amplitude 30 % below the
+map's): elsewhere the EGR-open regime is judged on eta_V alone.
 """
 
 from __future__ import annotations
@@ -33,7 +39,10 @@ __all__ = ["HARMONICS", "JUDGED", "RATIO_INPUTS", "PulsationRatio", "RatioContex
 
 # The harmonics' outputs: amplitude [unit] and phase [deg CA] per sensor
 HARMONICS = {"maf": ("maf_amp", "maf_phase"), "p2": ("p2_amp", "p2_phase")}
-RATIO_INPUTS = ("n", "x_egr")
+RATIO_INPUTS = ("n", "x_egr", "log_y_egr")
+# |p3 - p2| [Pa] below which the valve's admittance is not evaluated (egrflow.BALANCED_PA: the
+# flow model does not hold there, and those segments are outside the EGR-open regimes)
+BALANCED_PA = 1000.0
 # The outputs judged where the ratio holds: eta_V, both amplitudes and the p2 phase. Not the
 # MAF phase: it falls steeply with speed near its wrap (about 2350 rpm), and its ratio map
 # missed drives it never saw by 7-8.6 deg CA (99th percentile, three drives; the p2 phase's
@@ -94,8 +103,16 @@ class RatioContext:
 
     def share(self, X: np.ndarray) -> np.ndarray:
         """The recirculated share of the charge, ``m_egr / m_cyl``, per row."""
-        f = self.flow._flows(X)
-        return np.asarray(f["m_egr"] / np.maximum(f["m_cyl"], 1e-9))
+        return np.asarray(self.ratio_inputs(X)[:, RATIO_INPUTS.index("x_egr")])
+
+    def ratio_inputs(self, X: np.ndarray) -> np.ndarray:
+        """The ratio maps' inputs (:data:`RATIO_INPUTS`) per row of ``X``."""
+        X = np.atleast_2d(np.asarray(X, dtype=float))
+        f = self.flow.flows_of(X)
+        x = np.asarray(f["m_egr"] / np.maximum(f["m_cyl"], 1e-9))
+        dp = np.maximum(np.abs(f["p3"] - f["p2"]), BALANCED_PA)
+        y = np.maximum(np.abs(x) * f["p2"] / (2.0 * dp), 1e-6)
+        return np.column_stack([X[:, self.inputs.index("n")], x, np.log(y)])
 
     def evaluate(self, X: np.ndarray) -> dict[str, np.ndarray]:
         """The four harmonics' values and ``valid`` (within the EGR-closed maps' and the
@@ -106,7 +123,7 @@ class RatioContext:
             return last[1]
         n, rho2 = X[:, self.inputs.index("n")], X[:, self.inputs.index("rho2")]
         ref = base_harmonics(self.base, n, rho2)
-        R = np.column_stack([n, self.share(X)])
+        R = self.ratio_inputs(X)
         out = {"valid": self.base["eta_v"].in_region(np.column_stack([n, rho2]))
                & self.ratio[HARMONICS["maf"][0]].in_region(R)}
         for amp, ph in HARMONICS.values():
@@ -149,8 +166,9 @@ def fit_ratio_maps(R: np.ndarray, targets: Mapping[str, np.ndarray], fit: np.nda
     for amp, ph in HARMONICS.values():
         for k, use in ((amp, fit), (ph, fit[strong[ph][fit]])):
             ok = use[np.isfinite(targets[k][use]) & np.all(np.isfinite(R[use]), axis=1)]
+            # the coverage grid over (n, x_egr), the admittance within its identified range
             m = Lolimot(max_models=max_models, min_samples_per_model=50,
-                        coverage_min_count=coverage_min_count)
+                        coverage_min_count=coverage_min_count, coverage_inputs=2)
             m.fit(R[ok], targets[k][ok], input_names=RATIO_INPUTS, output_name=f"H_{k}")
             maps[k] = m
     maps[HARMONICS["maf"][0]].set_region(R[region])

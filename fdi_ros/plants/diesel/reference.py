@@ -983,7 +983,7 @@ def _pulsation_regime(d: Mapping[str, np.ndarray], base: ReferenceModelSet,
     ctx = pu.RatioContext(flow, base.models, {}, regime.inputs)
     sub = {k: np.asarray(v)[rows] for k, v in d.items()}
     ref = pu.base_harmonics(base.models, sub["n"], sub["rho2"])
-    R = np.column_stack([sub["n"], ctx.share(X[rows])])
+    R = ctx.ratio_inputs(X[rows])
     targets = pu.ratio_targets(sub, ref)
     min_amp = base.info.get("phase_min_amp", {})
     strong = {ph: ref[amp] >= float(min_amp.get(ph, -np.inf))

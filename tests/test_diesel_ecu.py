@@ -160,6 +160,35 @@ def test_coverage_report_counts_regions_reasons_and_false_symptoms():
                         "800..4000 rpm)") == "speed outside the identified range"
 
 
+def test_coverage_cells_count_the_residuals_judged_where_the_diagnosis_is_valid(tmp_path):
+    """Per speed-fuel cell: the valid share and the mean number of residuals judged (finite
+    thresholds) over the valid segments; invalid segments do not count; the figure is
+    written."""
+    from types import SimpleNamespace
+
+    from fdi_ros.core.types import FeatureVector
+    from fdi_ros.plants.diesel.coverage import coverage_cells, coverage_figure
+
+    inf = float("inf")
+    rows = [(1510.0, 21.0, (1.0, inf, inf, inf, inf), True),    # EGR open: eta_V alone
+            (1520.0, 21.5, (1.0, 2.0, inf, 3.0, 4.0), True),    # ... with the pulsations
+            (1530.0, 21.2, (1.0, 2.0, 3.0, 4.0, 5.0), False),   # not valid: not counted
+            (3010.0, 41.0, (1.0, 2.0, 3.0, 4.0, 5.0), True)]    # EGR closed: all five
+    feats = [FeatureVector(plant="diesel", index=i, t_start=i * 0.01, t_end=(i + 1) * 0.01,
+                           alpha_start=0.0, valid=True, status="", names=("n", "fuel"),
+                           units=("", ""), values=np.array(r[:2]))
+             for i, r in enumerate(rows)]
+    states = [SimpleNamespace(valid=r[3], levels=(0,) * 5, status="", names=("a",) * 5,
+                              threshold_high=np.array(r[2])) for r in rows]
+    cells = coverage_cells(feats, states)
+    i, j = int((1500 - 750) // 250), int(21 // 2)
+    assert cells["count"][i, j] == 3 and cells["share"][i, j] == pytest.approx(2 / 3)
+    assert cells["judged"][i, j] == pytest.approx(2.5)
+    assert cells["judged"][int((3000 - 750) // 250), int(41 // 2)] == 5
+    assert np.isnan(cells["judged"][0, 0]) and np.isnan(cells["share"][0, 0])
+    assert coverage_figure(feats, states, tmp_path / "c.png").stat().st_size > 0
+
+
 def test_fault_case_report_counts_valid_segments_from_the_onset():
     from types import SimpleNamespace as NS
 

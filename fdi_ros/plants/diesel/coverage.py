@@ -78,26 +78,53 @@ def coverage_report(features: Sequence, states: Sequence) -> dict[str, Any]:
     return out
 
 
+# The coverage figure's cells: 250 rpm x 2 mg fuel
+SPEED_BINS = np.arange(750.0, 5750.0, 250.0)
+FUEL_BINS = np.arange(0.0, 48.0, 2.0)
+
+
+def coverage_cells(features: Sequence, states: Sequence) -> dict[str, np.ndarray]:
+    """Per cell of :data:`SPEED_BINS` x :data:`FUEL_BINS`: the segments (``count``), the
+    share with a valid diagnosis (``share``) and how many residuals the valid ones are judged
+    on, on average (``judged``: a residual not judged in a regime has no finite threshold);
+    NaN where a cell has no segment (no valid one for ``judged``)."""
+    n = np.array([fv.get("n") for fv in features])
+    fuel = np.array([fv.get("fuel") if "fuel" in fv.names else np.nan for fv in features])
+    valid = np.array([s.valid for s in states], dtype=float)
+    judged = np.array([np.isfinite(s.threshold_high).sum() if s.valid else 0.0
+                       for s in states], dtype=float)
+    bins = (SPEED_BINS, FUEL_BINS)
+    cnt, _, _ = np.histogram2d(n, fuel, bins=bins)
+    ok, _, _ = np.histogram2d(n, fuel, bins=bins, weights=valid)
+    jn, _, _ = np.histogram2d(n, fuel, bins=bins, weights=judged)
+    return {"count": cnt, "share": np.where(cnt > 0, ok / np.maximum(cnt, 1), np.nan),
+            "judged": np.where(ok > 0, jn / np.maximum(ok, 1), np.nan)}
+
+
 def coverage_figure(features: Sequence, states: Sequence, path: str | Path, *,
                     title: str = "") -> Path:
     """Share of valid segments over the speed-torque map (bins of 250 rpm x 2 mg fuel), with
-    the segments' count as the marker size."""
+    the segments' count as the marker size; beside it, how many residuals the valid segments
+    are judged on there (the EGR-open regimes judge eta_V alone, or with the pulsations where
+    the EGR-closed maps cover them: which faults can show where)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    n = np.array([fv.get("n") for fv in features])
-    fuel = np.array([fv.get("fuel") if "fuel" in fv.names else np.nan for fv in features])
+    cells = coverage_cells(features, states)
+    nb, fb, cnt = SPEED_BINS, FUEL_BINS, cells["count"]
+    share, mean_judged = cells["share"], cells["judged"]
     valid = np.array([s.valid for s in states], dtype=float)
-    nb = np.arange(750.0, 5750.0, 250.0)
-    fb = np.arange(0.0, 48.0, 2.0)
-    cnt, _, _ = np.histogram2d(n, fuel, bins=(nb, fb))
-    ok, _, _ = np.histogram2d(n, fuel, bins=(nb, fb), weights=valid)
-    share = np.where(cnt > 0, ok / np.maximum(cnt, 1), np.nan)
-    fig, ax = plt.subplots(figsize=(8, 5))
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(15, 5))
     mesh = ax.pcolormesh(nb, fb, share.T, cmap="RdYlGn", vmin=0.0, vmax=1.0, shading="flat")
     fig.colorbar(mesh, ax=ax, label="share of segments with a valid diagnosis")
+    m2 = bx.pcolormesh(nb, fb, mean_judged.T, cmap="viridis", vmin=0.0,
+                       vmax=float(len(states[0].names)) if states else 5.0, shading="flat")
+    fig.colorbar(m2, ax=bx, label="residuals judged (mean over the valid segments)")
+    bx.set_xlabel("engine speed n [rpm]")
+    bx.set_ylabel("injected fuel [mg/stroke] (load)")
+    bx.set_title("what is judged where (1: eta_V alone, 5: eta_V and the pulsations)")
     # how much of the drive each cell holds: a cell crossed in a transient is as coloured as
     # one the engine cruises in
     cn, cf = np.meshgrid(0.5 * (nb[:-1] + nb[1:]), 0.5 * (fb[:-1] + fb[1:]), indexing="ij")

@@ -381,6 +381,12 @@ class BatchedModel:
                 valid[i] = False
                 status[i] = (f"not valid here: the {h.fault} effect maps are not identified "
                              f"in regime {regime[i]!r}")
+        at_all = np.flatnonzero(valid)
+        whys = h.look_alike_here([self.stream.feats[k0 + i] for i in at_all],
+                                 [regime[i] for i in at_all])
+        for i, why in zip(at_all, whys):
+            if why:
+                valid[i], status[i] = False, why
         rows = np.flatnonzero(valid)
         G = np.full((rows.size, len(cfg.names)), np.nan)
         reg = np.array(regime, dtype=object)[rows]

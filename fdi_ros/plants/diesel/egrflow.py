@@ -286,3 +286,12 @@ class EgrFlowEta:
         except (KeyError, TypeError, json.JSONDecodeError) as exc:
             raise ValueError(f"{side}: malformed EGR flow model: {exc}") from exc
         return cls(flow, base, region, inputs)
+
+
+def closed_valve_margin(flow: EgrFlowModel, eta_tot: np.ndarray,
+                        d: Mapping[str, np.ndarray]) -> np.ndarray:
+    """``p3 - p2`` [Pa] per segment with the EGR valve closed (the turbine alone carries the
+    exhaust flow): below 0 a valve that opened would pass boost air to the exhaust, a leak of
+    the boost volume (``d``: the features of :data:`INPUTS`, the T2 lag undone)."""
+    f = flow.flows({**d, "egr_cmd": np.zeros_like(np.asarray(d["n"], dtype=float))}, eta_tot)
+    return np.asarray(f["p3"] - f["p2"])

@@ -677,6 +677,7 @@ class FaultHypothesisResidualModel(_Batchable):
             r for r in further if r not in regimes)
         self._buf = _Window(self.window)
         self._g: dict[tuple[int, float], np.ndarray] = {}  # g(x) of prefetched segments
+        self._why: dict[tuple[int, float], str] = {}  # look-alike checks of prefetched ones
         # the effect maps evaluated together (one pass per segment, not one per residual)
         self._maps = {r: _EffectMaps(d, config.names) for r, d in further.items()}
         self._base = _EffectMaps(self.directions, config.names)
@@ -736,6 +737,7 @@ class FaultHypothesisResidualModel(_Batchable):
         self.size_estimate = 0.0
         self._qs.reset()
         self._g.clear()
+        self._why.clear()
 
     def prefetch(self, fvs: Sequence[FeatureVector]) -> None:
         """The segments about to be asked: parity residuals and effect maps g(x) of all of
@@ -756,6 +758,10 @@ class FaultHypothesisResidualModel(_Batchable):
                 continue
             self._g.update({(fv.index, fv.t_end): g
                             for fv, g in zip(group, self.direction(X, regime))})
+        # the look-alike check of the base regime's segments in one solve of the exhaust side
+        base = by_regime.get(self.models.regime, [])
+        self._why = dict(zip(((fv.index, fv.t_end) for fv in base),
+                             self.look_alike_here(base, [self.models.regime] * len(base))))
 
     @property
     def inputs(self) -> tuple[str, ...]:
@@ -781,7 +787,9 @@ class FaultHypothesisResidualModel(_Batchable):
         if not self.covers(rv.regime):
             return self._elsewhere(rv)
         if self._flow is not None:
-            why = self.look_alike_here([fv], [rv.regime])[0]
+            why = self._why.pop((fv.index, fv.t_end), None)
+            if why is None:
+                why = self.look_alike_here([fv], [rv.regime])[0]
             if why:
                 self._g.pop((fv.index, fv.t_end), None)
                 return self._look_alike_status(rv, why)

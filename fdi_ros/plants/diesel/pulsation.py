@@ -34,15 +34,16 @@ from typing import Any
 
 import numpy as np
 
+from fdi_ros.plants.diesel.egrflow import BALANCED_PA
+
 __all__ = ["HARMONICS", "JUDGED", "RATIO_INPUTS", "PulsationRatio", "RatioContext",
            "base_harmonics", "fit_ratio_maps", "ratio_targets"]
 
 # The harmonics' outputs: amplitude [unit] and phase [deg CA] per sensor
 HARMONICS = {"maf": ("maf_amp", "maf_phase"), "p2": ("p2_amp", "p2_phase")}
+# (|p3 - p2| at least egrflow.BALANCED_PA for the admittance: the flow model does not hold
+# nearer balance, and those segments are outside the EGR-open regimes)
 RATIO_INPUTS = ("n", "x_egr", "log_y_egr")
-# |p3 - p2| [Pa] below which the valve's admittance is not evaluated (egrflow.BALANCED_PA: the
-# flow model does not hold there, and those segments are outside the EGR-open regimes)
-BALANCED_PA = 1000.0
 # The outputs judged where the ratio holds: eta_V, both amplitudes and the p2 phase. Not the
 # MAF phase: it falls steeply with speed near its wrap (about 2350 rpm), and its ratio map
 # missed drives it never saw by 7-8.6 deg CA (99th percentile, three drives; the p2 phase's
@@ -53,6 +54,8 @@ JUDGED = ("eta_v", "maf_amp", "p2_amp", "p2_phase")
 # Fewest identification segments a cell of the ratio maps' (n, x_egr) coverage grid needs to
 # count as identified (16 x 16 cells)
 MIN_CELL_SEGMENTS = 30
+# One period of the harmonics' phase [deg CA] (reference.PERIOD_DEG; this module is imported
+# by reference and does not import it)
 PERIOD_DEG = 180.0
 
 

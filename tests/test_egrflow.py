@@ -51,6 +51,23 @@ def test_mass_balance_and_closed_valve():
     assert ef.EgrFlowModel.from_dict(m.to_dict()) == m
 
 
+def test_closed_valve_exhaust_pressure_in_closed_form_equals_the_solved_balance():
+    """With the valve closed p3 solves a quadratic (the turbine alone): the closed form equals
+    the bisection of the mass balance, parameters and segments drawn at random; the margin
+    p3 - p2 follows (negative where the boost is above the exhaust pressure)."""
+    seed = random.randrange(2**32)
+    rng = np.random.default_rng(seed)
+    d, eta_tot = _segments(rng, 500)
+    d["egr_cmd"] = np.zeros(500)
+    d["rho2"] = d["rho2"] * rng.uniform(0.8, 1.8, 500)   # boost above the exhaust, some
+    m = ef.EgrFlowModel(_theta(random.Random(seed)), 2.0, 4)
+    f = m.flows(d, eta_tot)
+    np.testing.assert_allclose(m.closed_valve_p3(d, eta_tot), f["p3"], rtol=1e-9)
+    margin = ef.closed_valve_margin(m, eta_tot, d)
+    np.testing.assert_allclose(margin, f["p3"] - f["p2"], rtol=1e-9, atol=1e-3)
+    assert (margin < 0).any() and (margin > 0).any(), seed
+
+
 def test_parameters_drawn_at_random_are_recovered():
     seed = random.randrange(2**32)
     print("seed", seed)

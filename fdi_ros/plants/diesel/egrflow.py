@@ -76,22 +76,40 @@ class EgrFlowModel:
                                                                                   dtype=float)
         return np.asarray(eta_tot, dtype=float) * (1.0 - self.port[0] - self.port[1] * x)
 
-    def flows(self, d: Mapping[str, np.ndarray], eta_tot: np.ndarray
-              ) -> dict[str, np.ndarray]:
-        """Per segment: ``m_th, m_cyl, m_fuel, m_egr, m_t, p3, T3, p4`` (SI units)."""
-        a_e, gam, a_o, a_c, c_t, k_x = self.theta
+    def _exhaust(self, d: Mapping[str, np.ndarray], eta_tot: np.ndarray
+                 ) -> dict[str, np.ndarray]:
+        """The exhaust side's given quantities per segment: ``n, p2, T2, m_th, m_cyl, m_f,
+        m_x, T3, p4, a_t`` (SI units)."""
+        _, _, a_o, a_c, c_t, k_x = self.theta
         n = np.asarray(d["n"], dtype=float)
         rho2 = np.asarray(d["rho2"], dtype=float)
         T2 = np.asarray(d["T2"], dtype=float)
-        p2 = rho2 * R_AIR * T2
         m_th = rho2 * self.displacement_l * 1e-3 * n / 120.0
         m_cyl = self.charge(d, eta_tot) * m_th
         m_f = np.asarray(d["fuel"], dtype=float) * 1e-6 * n / 120.0 * self.n_cyl
         m_x = m_cyl + m_f
-        T3 = T2 + c_t * m_f / np.maximum(m_x, 1e-9)
-        p4 = P_AMB + k_x * m_x ** 2
         vgt = np.clip(np.asarray(d["vgt"], dtype=float), 0.0, 1.0)
-        a_t = a_o - vgt * (a_o - a_c)
+        return {"n": n, "p2": rho2 * R_AIR * T2, "T2": T2, "m_th": m_th, "m_cyl": m_cyl,
+                "m_f": m_f, "m_x": m_x, "T3": T2 + c_t * m_f / np.maximum(m_x, 1e-9),
+                "p4": P_AMB + k_x * m_x ** 2, "a_t": a_o - vgt * (a_o - a_c)}
+
+    def closed_valve_p3(self, d: Mapping[str, np.ndarray], eta_tot: np.ndarray
+                        ) -> np.ndarray:
+        """p3 [Pa] per segment with the EGR valve closed: the turbine alone carries the exhaust
+        flow, ``m_x^2 = a_t^2 (2 p3 / (R T3)) (p3 - p4)``, a quadratic in p3 (what
+        :meth:`flows` solves by bisection with the valve at 0)."""
+        e = self._exhaust(d, eta_tot)
+        c = e["m_x"] ** 2 * R_AIR * e["T3"] / (2.0 * np.maximum(e["a_t"], 1e-12) ** 2)
+        return np.asarray(0.5 * (e["p4"] + np.sqrt(e["p4"] ** 2 + 4.0 * c)))
+
+    def flows(self, d: Mapping[str, np.ndarray], eta_tot: np.ndarray
+              ) -> dict[str, np.ndarray]:
+        """Per segment: ``m_th, m_cyl, m_fuel, m_egr, m_t, p3, T3, p4`` (SI units)."""
+        a_e, gam = self.theta[:2]
+        e = self._exhaust(d, eta_tot)
+        p2, T2, m_th, m_cyl, m_f, m_x = (e[k] for k in ("p2", "T2", "m_th", "m_cyl", "m_f",
+                                                          "m_x"))
+        T3, p4, a_t = e["T3"], e["p4"], e["a_t"]
         a_egr = a_e * np.clip(np.asarray(d["egr_cmd"], dtype=float), 0.0, 1.0) ** gam
         k3 = np.sqrt(2.0 / (R_AIR * T3))
         back = a_egr * np.sqrt(2.0 * p2 / (R_AIR * T2))  # intake gas, the other way
@@ -293,5 +311,5 @@ def closed_valve_margin(flow: EgrFlowModel, eta_tot: np.ndarray,
     """``p3 - p2`` [Pa] per segment with the EGR valve closed (the turbine alone carries the
     exhaust flow): below 0 a valve that opened would pass boost air to the exhaust, a leak of
     the boost volume (``d``: the features of :data:`INPUTS`, the T2 lag undone)."""
-    f = flow.flows({**d, "egr_cmd": np.zeros_like(np.asarray(d["n"], dtype=float))}, eta_tot)
-    return np.asarray(f["p3"] - f["p2"])
+    p2 = np.asarray(d["rho2"], dtype=float) * R_AIR * np.asarray(d["T2"], dtype=float)
+    return np.asarray(flow.closed_valve_p3(d, eta_tot) - p2)

@@ -63,7 +63,7 @@ def test_closed_valve_exhaust_pressure_in_closed_form_equals_the_solved_balance(
     m = ef.EgrFlowModel(_theta(random.Random(seed)), 2.0, 4)
     f = m.flows(d, eta_tot)
     np.testing.assert_allclose(m.closed_valve_p3(d, eta_tot), f["p3"], rtol=1e-9)
-    margin = ef.closed_valve_margin(m, eta_tot, d)
+    margin = m.closed_valve_margin(d, eta_tot)
     np.testing.assert_allclose(margin, f["p3"] - f["p2"], rtol=1e-9, atol=1e-3)
     assert (margin < 0).any() and (margin > 0).any(), seed
 

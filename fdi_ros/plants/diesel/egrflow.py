@@ -98,9 +98,15 @@ class EgrFlowModel:
         """p3 [Pa] per segment with the EGR valve closed: the turbine alone carries the exhaust
         flow, ``m_x^2 = a_t^2 (2 p3 / (R T3)) (p3 - p4)``, a quadratic in p3 (what
         :meth:`flows` solves by bisection with the valve at 0)."""
+        return _closed_p3(self._exhaust(d, eta_tot))
+
+    def closed_valve_margin(self, d: Mapping[str, np.ndarray], eta_tot: np.ndarray
+                            ) -> np.ndarray:
+        """``p3 - p2`` [Pa] per segment with the EGR valve closed: below 0 a valve that
+        opened would pass boost air to the exhaust, a leak of the boost volume (``d``: the
+        features of :data:`INPUTS`, the T2 lag undone)."""
         e = self._exhaust(d, eta_tot)
-        c = e["m_x"] ** 2 * R_AIR * e["T3"] / (2.0 * np.maximum(e["a_t"], 1e-12) ** 2)
-        return np.asarray(0.5 * (e["p4"] + np.sqrt(e["p4"] ** 2 + 4.0 * c)))
+        return np.asarray(_closed_p3(e) - e["p2"])
 
     def flows(self, d: Mapping[str, np.ndarray], eta_tot: np.ndarray
               ) -> dict[str, np.ndarray]:
@@ -306,10 +312,8 @@ class EgrFlowEta:
         return cls(flow, base, region, inputs)
 
 
-def closed_valve_margin(flow: EgrFlowModel, eta_tot: np.ndarray,
-                        d: Mapping[str, np.ndarray]) -> np.ndarray:
-    """``p3 - p2`` [Pa] per segment with the EGR valve closed (the turbine alone carries the
-    exhaust flow): below 0 a valve that opened would pass boost air to the exhaust, a leak of
-    the boost volume (``d``: the features of :data:`INPUTS`, the T2 lag undone)."""
-    p2 = np.asarray(d["rho2"], dtype=float) * R_AIR * np.asarray(d["T2"], dtype=float)
-    return np.asarray(flow.closed_valve_p3(d, eta_tot) - p2)
+def _closed_p3(e: Mapping[str, np.ndarray]) -> np.ndarray:
+    """The root of ``m_x^2 = a_t^2 (2 p3 / (R T3)) (p3 - p4)`` from the exhaust side's given
+    quantities ``e`` (:meth:`EgrFlowModel._exhaust`)."""
+    c = e["m_x"] ** 2 * R_AIR * e["T3"] / (2.0 * np.maximum(e["a_t"], 1e-12) ** 2)
+    return np.asarray(0.5 * (e["p4"] + np.sqrt(e["p4"] ** 2 + 4.0 * c)))

@@ -37,7 +37,7 @@ import numpy as np
 from fdi_ros.plants.diesel.egrflow import BALANCED_PA
 
 __all__ = ["HARMONICS", "JUDGED", "RATIO_INPUTS", "PulsationRatio", "RatioContext",
-           "base_harmonics", "fit_ratio_maps", "ratio_targets"]
+           "base_harmonics", "fit_ratio_maps", "ratio_inputs", "ratio_targets"]
 
 # The harmonics' outputs: amplitude [unit] and phase [deg CA] per sensor
 HARMONICS = {"maf": ("maf_amp", "maf_phase"), "p2": ("p2_amp", "p2_phase")}
@@ -77,6 +77,18 @@ def base_harmonics(base: Mapping[str, Any], n: np.ndarray, rho2: np.ndarray
     return out
 
 
+def ratio_inputs(flow: Any, X: np.ndarray, inputs: tuple[str, ...]) -> np.ndarray:
+    """The ratio maps' inputs (:data:`RATIO_INPUTS`) per row of ``X`` (columns ``inputs``),
+    the share and the admittance from the EGR flow model ``flow``
+    (:class:`.egrflow.EgrFlowEta`)."""
+    X = np.atleast_2d(np.asarray(X, dtype=float))
+    f = flow.flows_of(X)
+    x = np.asarray(f["m_egr"] / np.maximum(f["m_cyl"], 1e-9))
+    dp = np.maximum(np.abs(f["p3"] - f["p2"]), BALANCED_PA)
+    y = np.maximum(np.abs(x) * f["p2"] / (2.0 * dp), 1e-6)
+    return np.column_stack([X[:, inputs.index("n")], x, np.log(y)])
+
+
 def ratio_targets(data: Mapping[str, np.ndarray], ref: Mapping[str, np.ndarray]
                   ) -> dict[str, np.ndarray]:
     """Per output, the ratio map's target: log of the amplitude ratio, the phase difference
@@ -104,19 +116,6 @@ class RatioContext:
         self.flow, self.base, self.ratio, self.inputs = flow, dict(base), dict(ratio), inputs
         self._last: tuple[tuple[tuple[int, ...], bytes], dict[str, np.ndarray]] | None = None
 
-    def share(self, X: np.ndarray) -> np.ndarray:
-        """The recirculated share of the charge, ``m_egr / m_cyl``, per row."""
-        return np.asarray(self.ratio_inputs(X)[:, RATIO_INPUTS.index("x_egr")])
-
-    def ratio_inputs(self, X: np.ndarray) -> np.ndarray:
-        """The ratio maps' inputs (:data:`RATIO_INPUTS`) per row of ``X``."""
-        X = np.atleast_2d(np.asarray(X, dtype=float))
-        f = self.flow.flows_of(X)
-        x = np.asarray(f["m_egr"] / np.maximum(f["m_cyl"], 1e-9))
-        dp = np.maximum(np.abs(f["p3"] - f["p2"]), BALANCED_PA)
-        y = np.maximum(np.abs(x) * f["p2"] / (2.0 * dp), 1e-6)
-        return np.column_stack([X[:, self.inputs.index("n")], x, np.log(y)])
-
     def evaluate(self, X: np.ndarray) -> dict[str, np.ndarray]:
         """The four harmonics' values and ``valid`` (within the EGR-closed maps' and the
         ratio maps' coverage) per row."""
@@ -126,7 +125,7 @@ class RatioContext:
             return last[1]
         n, rho2 = X[:, self.inputs.index("n")], X[:, self.inputs.index("rho2")]
         ref = base_harmonics(self.base, n, rho2)
-        R = self.ratio_inputs(X)
+        R = ratio_inputs(self.flow, X, self.inputs)
         out = {"valid": self.base["eta_v"].in_region(np.column_stack([n, rho2]))
                & self.ratio[HARMONICS["maf"][0]].in_region(R)}
         for amp, ph in HARMONICS.values():

@@ -265,8 +265,9 @@ class ReferenceModelSet:
             if ms.info.get(WHERE_COVERED) and (free & inside).any():
                 # a regime tried only where its maps cover the segment (else the next one)
                 rows = np.flatnonzero(free & inside)
-                sub = {k: np.broadcast_to(np.atleast_1d(np.asarray(v, dtype=float)),
-                                          (size,))[rows] for k, v in data.items()}
+                sub = {k: np.broadcast_to(np.atleast_1d(np.asarray(data[k], dtype=float)),
+                                          (size,))[rows]
+                       for k in ("n", "rho2", *ms.extra_inputs) if k in data}
                 inside = inside.copy()
                 inside[rows] = ms.predict(sub["n"], sub["rho2"], phases=False, extra={
                     k: sub[k] for k in ms.extra_inputs if k in sub})[1]
@@ -966,10 +967,10 @@ def _pulsation_regime(d: Mapping[str, np.ndarray], base: ReferenceModelSet,
                       ) -> tuple[ReferenceModelSet, dict[str, float], int] | None:
     """The EGR-open regime ``regime`` (its eta_V an EGR flow model) judged on the pulsations
     too, where the base maps cover a segment: the harmonics relative to the base maps' by
-    ratio maps of (n, x_egr) (:mod:`.pulsation`), identified on its segments of ``d`` within
-    the base maps' coverage. Returns the set, the held-out NRMSE per output (the harmonics
-    themselves) and the segments it was identified on; None with fewer than
-    :data:`MIN_REGIME_SEGMENTS` of them."""
+    ratio maps of :data:`.pulsation.RATIO_INPUTS` (:mod:`.pulsation`), identified on its
+    segments of ``d`` within the base maps' coverage. Returns the set, the held-out NRMSE per
+    output (the harmonics themselves) and the segments it was identified on; None with fewer
+    than :data:`MIN_REGIME_SEGMENTS` of them."""
     from fdi_ros.plants.diesel import pulsation as pu
 
     flow = regime.models["eta_v"]
@@ -980,10 +981,9 @@ def _pulsation_regime(d: Mapping[str, np.ndarray], base: ReferenceModelSet,
     rows = np.flatnonzero(inside)
     if rows.size < MIN_REGIME_SEGMENTS:
         return None
-    ctx = pu.RatioContext(flow, base.models, {}, regime.inputs)
     sub = {k: np.asarray(v)[rows] for k, v in d.items()}
     ref = pu.base_harmonics(base.models, sub["n"], sub["rho2"])
-    R = ctx.ratio_inputs(X[rows])
+    R = pu.ratio_inputs(flow, X[rows], regime.inputs)
     targets = pu.ratio_targets(sub, ref)
     min_amp = base.info.get("phase_min_amp", {})
     strong = {ph: ref[amp] >= float(min_amp.get(ph, -np.inf))

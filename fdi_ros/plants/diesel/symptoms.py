@@ -50,6 +50,7 @@ from fdi_ros.core.symptoms import (
 from fdi_ros.core.symptoms import calibrate_thresholds as _calibrate
 from fdi_ros.core.types import FeatureVector, ResidualVector
 from fdi_ros.plants.diesel.ecu import ACTUATOR_SETTLE_S, GATED_ACTUATORS, actuator_status
+from fdi_ros.plants.diesel.egrflow import INPUTS as FLOW_INPUTS
 from fdi_ros.plants.diesel.plant import TOO_FAST_HOLD
 from fdi_ros.plants.diesel.reference import (
     OUTPUTS,
@@ -689,14 +690,15 @@ class FaultHypothesisResidualModel(_Batchable):
                             for ms in models.regimes]
         flows = [f for f in flows if f is not None and f.port == (0.0, 0.0)]
         self._flow: Any = flows[0] if flows and self._look_alike else None
+        # the features the check reads: the flow model's and those the lags are undone with
+        self._look_keys = tuple(k for k in model_features(models) if k in FLOW_INPUTS
+                                or k in ("T2_rate", "vgt_rate", "eta_v"))
 
     def look_alike_here(self, feats: Sequence[FeatureVector],
                         regimes: Sequence[str]) -> list[str]:
         """Per segment, why the fault cannot be told from its look-alike there ("" where it
         can): with the EGR valve closed (the base regime, settled or not) and the exhaust
         pressure estimated below the boost pressure plus :data:`BACKFLOW_MARGIN_PA`."""
-        from fdi_ros.plants.diesel import egrflow
-
         out = [""] * len(feats)
         rows = [i for i, r in enumerate(regimes) if self._flow is not None
                 and r.removesuffix(TRANSIENT_SUFFIX) == self.models.regime]
@@ -704,13 +706,12 @@ class FaultHypothesisResidualModel(_Batchable):
             return out
         try:
             raw = {k: np.array([feats[i].get(k) for i in rows], dtype=float)
-                   for k in model_features(self.models) if k in egrflow.INPUTS
-                   or k in ("T2_rate", "vgt_rate", "eta_v")}
+                   for k in self._look_keys}
             d = self.models.compensate(raw)
         except KeyError:
             return out
         eta = self.models.models["eta_v"].predict(np.column_stack([d["n"], d["rho2"]]))
-        margin = egrflow.closed_valve_margin(self._flow, eta, d)
+        margin = self._flow.closed_valve_margin(d, eta)
         for i, m in zip(rows, margin):
             if m < BACKFLOW_MARGIN_PA:
                 out[i] = (f"not valid here: {self.fault} cannot be told from "

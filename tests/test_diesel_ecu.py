@@ -232,3 +232,61 @@ def test_stuck_actuators_are_observable_only_below_the_command():
     assert observable("swirl_flap_closed", 1.0, fv(0.3, 0.0))
     assert not observable("swirl_flap_closed", 1.0, fv(0.3, 1.0))
     assert observable("leak_ic_engine", 5.0, fv(0.6, 1.0))
+
+
+def test_fault_effect_against_the_fault_free_twin():
+    """The fault's change of each judged residual in threshold units, and whether it crosses a
+    threshold the twin stays within; not comparable across regimes or where a run is not
+    valid; a residual not judged (infinite threshold) never counts."""
+    from fdi_ros.core.symptoms import SymptomState
+    from fdi_ros.plants.diesel.coverage import fault_case_report, fault_effect
+
+    rng = np.random.default_rng()
+    inf = np.inf
+
+    def st(r, valid=True, regime="a"):
+        return SymptomState(0, 0.0, valid, "", ("s_x", "s_y", "s_z"), (0, 0, 0), tuple(r),
+                            (-1.0, 0.0, -inf), (3.0, 4.0, inf), (5.0, 8.0, inf),
+                            regime=regime)
+
+    # thresholds: x centre 1 half-width 2; y centre 2 half-width 2; z not judged
+    free = [st((1.0, 2.0, 0.0)), st((4.5, 2.0, 0.0)), st((1.0, 2.0, 0.0)),
+            st((1.0, 2.0, 0.0), valid=False), st((1.0, 2.0, 0.0), regime="b"),
+            st((1.0, 2.0, 0.0))]
+    z = float(rng.uniform(-1e6, 1e6))
+    fault = [st((1.0, 7.0, z)), st((5.5, 2.0, z)), st((2.0, 1.0, z)), st((9.0, 2.0, z)),
+             st((9.0, 2.0, z)), st((1.0, 2.0, z), valid=False)]
+    effect, shown = fault_effect(fault, free)
+    assert effect[:3] == pytest.approx([2.5, 0.5, 0.5])
+    assert np.isnan(effect[3:]).all()
+    assert shown.tolist() == [True, False, False, False, False, False]
+    with pytest.raises(ValueError, match="same drive"):
+        fault_effect(fault, free[:-1])
+
+    # the detector's delay counted in segments where the fault shows, from the onset
+    from types import SimpleNamespace as NS
+
+    from fdi_ros.core.types import FeatureVector
+
+    n = 30
+    feats = [FeatureVector(plant="diesel", index=i, t_start=i * 0.02, t_end=(i + 1) * 0.02,
+                           alpha_start=0.0, valid=True, status="", names=("n", "fuel"),
+                           units=("rpm", "mg/stroke"), values=np.array([1500.0, 20.0]))
+             for i in range(n)]
+    det_at = int(rng.integers(12, n))
+    shows = np.zeros(n, dtype=bool)
+    shows[int(rng.integers(0, 4))] = True            # before the onset: not counted
+    picked = rng.choice(np.arange(6, det_at), size=int(rng.integers(0, 4)), replace=False)
+    shows[picked] = True
+    steps = [(None, None, NS(symptoms=NS(valid=True, levels=(1,) if i >= det_at else (0,),
+                                         signature="+"),
+                            diagnosis=NS(isolated_faults=())))
+             for i in range(n)]
+    rep = fault_case_report(steps, feats, "egr_leaky", 0.1, effect=(np.where(shows, 2.0, 0.1),
+                                                                      shows))
+    assert rep["detectable_segments_to_detection"] == len(picked)
+    assert rep["within_segments_detectable"]
+    assert rep["max_effect"] == (2.0 if len(picked) else 0.1)
+    first = min(picked) if len(picked) else None
+    assert rep["first_detectable_after_onset_s"] == (
+        None if first is None else pytest.approx((first + 1) * 0.02 - 0.1))

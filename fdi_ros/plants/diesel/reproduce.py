@@ -262,8 +262,10 @@ def run(args: argparse.Namespace) -> int:
                                             for k, v in rd["regions"].items()))
             for r in rd["faults"]:
                 print(f"  {r['fault']:22s} onset {r['onset_drive_s']:7.1f} s detected="
-                      f"{r['detected']} after {r['delay_valid_segments']} valid segments, "
-                      f"isolated {r['isolated']}")
+                      f"{r['detected']} after {r['delay_s']} s, {r['delay_valid_segments']} "
+                      f"valid segments; first shows {r.get('first_detectable_after_onset_s')} "
+                      f"s, {r.get('detectable_segments_to_detection')} segments showing it "
+                      f"before the detection; isolated {r['isolated']}")
         if "hypotheses" in report:
             print("hypotheses:", json.dumps(report["hypotheses"]["verdict"]))
     del np

@@ -68,6 +68,28 @@ def test_closed_valve_exhaust_pressure_in_closed_form_equals_the_solved_balance(
     assert (margin < 0).any() and (margin > 0).any(), seed
 
 
+def test_closed_valve_leak_is_the_small_valve_opening_limit():
+    """A leak of area A across the closed valve lowers the fresh-air eta_V by A times
+    ``closed_valve_leak``: equal to the solved balance with the valve opened to that area, in
+    the limit of a small area (the leak's own change of p3 neglected), with the backflow's
+    sign where the boost is above the exhaust pressure (segments and parameters at random)."""
+    seed = random.randrange(2**32)
+    rng = np.random.default_rng(seed)
+    d, eta_tot = _segments(rng, 400)
+    d["rho2"] = d["rho2"] * rng.uniform(0.8, 1.8, 400)
+    theta = _theta(random.Random(seed))
+    m = ef.EgrFlowModel(theta, 2.0, 4)
+    q = m.closed_valve_leak(d, eta_tot)
+    area = 1e-3 * theta[0]                       # a thousandth of the open valve's
+    tiny = {**d, "egr_cmd": np.full(400, 1e-3 ** (1.0 / theta[1]))}
+    drop = eta_tot - m.eta_fresh(tiny, eta_tot)
+    margin = m.closed_valve_margin(d, eta_tot)
+    assert np.array_equal(q > 0, margin > 0) and (q < 0).any() and (q > 0).any(), seed
+    far = np.abs(margin) > 2000.0                # the orifice's root is steep at balance
+    np.testing.assert_allclose(area * q[far], drop[far], rtol=0.02, atol=1e-6,
+                               err_msg=str(seed))
+
+
 def test_parameters_drawn_at_random_are_recovered():
     seed = random.randrange(2**32)
     print("seed", seed)

@@ -410,6 +410,9 @@ class BatchedModel:
             if keep_a.size:
                 X = np.column_stack([c[0][k0:][sub[keep_a]] for c in cols])
                 G[at[keep_a]] = h.direction(X, name)
+                leak = h.leak_effect([self.stream.feats[k0 + i] for i in sub[keep_a]], name)
+                if leak is not None:   # the exhaust side's, not the map's
+                    G[at[keep_a], cfg.names.index("r_eta")] = leak
         fin = np.all(np.isfinite(G), axis=1)
         for bad in rows[~fin]:
             if valid[bad]:

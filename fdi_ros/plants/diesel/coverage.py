@@ -243,7 +243,7 @@ def fault_case_report(steps: Sequence, features: Sequence, fault: str, onset: fl
 
 def realistic_drive(config, *, seed: int = 202, progress: bool = False,
                     figures: str | Path | None = None, before_s: float = 20.0,
-                    after_s: float = 300.0) -> dict[str, Any]:
+                    after_s: float = 600.0) -> dict[str, Any]:
     """The realistic drive diagnosed by the graph's bank (``config``: the graph configuration):
     coverage per region and false symptoms on the fault-free drive, and each fault case in a
     window around its onset (``before_s`` .. ``after_s``), measured against the same window

@@ -108,6 +108,21 @@ class EgrFlowModel:
         e = self._exhaust(d, eta_tot)
         return np.asarray(_closed_p3(e) - e["p2"])
 
+    def closed_valve_leak(self, d: Mapping[str, np.ndarray], eta_tot: np.ndarray
+                          ) -> np.ndarray:
+        """Per segment, the flow through one square metre of leak across the closed EGR
+        valve, relative to the cylinders' ``m_th`` [1/m^2]: ``sqrt(2 p3 / (R T3)) sqrt(p3 -
+        p2) / m_th`` (exhaust gas into the manifold), negative where p2 exceeds p3 (intake gas
+        to the exhaust, ``sqrt(2 p2 / (R T2)) sqrt(p2 - p3)``). A leak of effective area A
+        lowers the fresh-air eta_V by A times this (the valve's own leak path: the exhaust
+        side's p3 with the turbine alone carrying the flow, its change by the small leak
+        neglected)."""
+        e = self._exhaust(d, eta_tot)
+        p3, p2 = _closed_p3(e), e["p2"]
+        fwd = np.sqrt(2.0 * p3 / (R_AIR * e["T3"])) * np.sqrt(np.maximum(p3 - p2, 0.0))
+        back = np.sqrt(2.0 * p2 / (R_AIR * e["T2"])) * np.sqrt(np.maximum(p2 - p3, 0.0))
+        return np.asarray((fwd - back) / e["m_th"])
+
     def flows(self, d: Mapping[str, np.ndarray], eta_tot: np.ndarray
               ) -> dict[str, np.ndarray]:
         """Per segment: ``m_th, m_cyl, m_fuel, m_egr, m_t, p3, T3, p4`` (SI units)."""

@@ -626,6 +626,16 @@ class ReferenceResidualModel(_Batchable):
 BACKFLOW_LOOK_ALIKES = {"leak_ic_engine": "egr_stuck_open"}
 # The margin [Pa] of the exhaust-side model's p3 below which that holds
 BACKFLOW_MARGIN_PA = 5000.0
+# Faults whose effect on eta_V with the EGR valve closed is the flow of a fixed hole across
+# the valve: the exhaust side's p3 - p2 sets its size and its sign, and a map of the operating
+# point learns that along the identification's cycle only. Measured: after a tip-in at 1283
+# rpm near full load a leaky valve passed exhaust gas forward (eta_V "+") where its map,
+# learnt in steady state, said about nothing; the vent's hypothesis explained the "+" and was
+# isolated. There the eta_V effect is the exhaust-side model's leak flow
+# (EgrFlowModel.closed_valve_leak) times a coefficient fitted on the identification's
+# segments, where it explains their effect this well (R^2; the map stays otherwise).
+VALVE_LEAK_FAULTS = ("egr_leaky", "egr_stuck_open")
+MIN_LEAK_FIT_R2 = 0.8
 
 
 class FaultHypothesisResidualModel(_Batchable):
@@ -655,8 +665,8 @@ class FaultHypothesisResidualModel(_Batchable):
                  directions: Mapping[str, Lolimot], model_id: str, window: int = 40,
                  penalty: float = DEFAULT_PENALTY, min_effect: float = 1.0,
                  regimes: Sequence[str] | None = None,
-                 regime_directions: Mapping[str, Mapping[str, Lolimot]] | None = None
-                 ) -> None:
+                 regime_directions: Mapping[str, Mapping[str, Lolimot]] | None = None,
+                 eta_leak: float | None = None) -> None:
         if config is None:
             raise ValueError("a fault-hypothesis model needs the fault-free residual scales")
         if int(window) < 1:
@@ -685,14 +695,18 @@ class FaultHypothesisResidualModel(_Batchable):
         self.size_estimate = 0.0
         self._qs = QuasiStationarity(config)
         self._look_alike = BACKFLOW_LOOK_ALIKES.get(fault.split(":")[0])
-        # the exhaust side's model: the flaps-open EGR-open regime's (no ports' loss)
-        flows: list[Any] = [getattr(ms.models.get("eta_v"), "flow", None)
-                            for ms in models.regimes]
-        flows = [f for f in flows if f is not None and f.port == (0.0, 0.0)]
-        self._flow: Any = flows[0] if flows and self._look_alike else None
-        # the features the check reads: the flow model's and those the lags are undone with
-        self._look_keys = tuple(k for k in model_features(models) if k in FLOW_INPUTS
-                                or k in ("T2_rate", "vgt_rate", "eta_v"))
+        if eta_leak is not None and not (math.isfinite(eta_leak) and "r_eta" in config.names):
+            raise ValueError("eta_leak must be finite, with an r_eta residual")
+        # the base regime's eta_V effect: the leak flow across the closed valve times this
+        self.eta_leak = None if eta_leak is None else float(eta_leak)
+        flow = exhaust_side(models)
+        self._flow: Any = flow if self._look_alike or self.eta_leak is not None else None
+        if self.eta_leak is not None and flow is None:
+            raise ValueError(f"{fault}: the leak's eta_V effect needs the exhaust-side model "
+                             "(an EGR-open regime with a flow model)")
+        # the features the exhaust side reads: the flow model's and those the lags are
+        # undone with
+        self._look_keys = _exhaust_keys(models)
 
     def look_alike_here(self, feats: Sequence[FeatureVector],
                         regimes: Sequence[str]) -> list[str]:
@@ -701,16 +715,13 @@ class FaultHypothesisResidualModel(_Batchable):
         pressure estimated below the boost pressure plus :data:`BACKFLOW_MARGIN_PA`."""
         out = [""] * len(feats)
         rows = [i for i, r in enumerate(regimes) if self._flow is not None
-                and r.removesuffix(TRANSIENT_SUFFIX) == self.models.regime]
+                and self._look_alike and r.removesuffix(TRANSIENT_SUFFIX) == self.models.regime]
         if not rows:
             return out
         try:
-            raw = {k: np.array([feats[i].get(k) for i in rows], dtype=float)
-                   for k in self._look_keys}
-            d = self.models.compensate(raw)
+            d, eta = self._closed_side([feats[i] for i in rows])
         except KeyError:
             return out
-        eta = self.models.models["eta_v"].predict(np.column_stack([d["n"], d["rho2"]]))
         margin = self._flow.closed_valve_margin(d, eta)
         for i, m in zip(rows, margin):
             if m < BACKFLOW_MARGIN_PA:
@@ -719,6 +730,34 @@ class FaultHypothesisResidualModel(_Batchable):
                           f"pressure (p3 - p2 = {m / 1000.0:.0f} kPa with the EGR valve "
                           "closed: a valve stuck open passes boost air to the exhaust)")
         return out
+
+    def _closed_side(self, feats: Sequence[FeatureVector]
+                     ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+        """The exhaust-side model's inputs of ``feats`` (lags undone) and the EGR-closed
+        map's eta_V there (KeyError: a feature missing)."""
+        raw = {k: np.array([fv.get(k) for fv in feats], dtype=float) for k in self._look_keys}
+        d = self.models.compensate(raw)
+        return d, self.models.models["eta_v"].predict(np.column_stack([d["n"], d["rho2"]]))
+
+    def effects(self, feats: Sequence[FeatureVector], regime: str) -> np.ndarray:
+        """g of ``feats`` (all in ``regime``), (N, m): the regime's effect maps, and in the
+        base regime with :attr:`eta_leak` the eta_V column from the exhaust side's leak flow
+        (KeyError: a feature missing)."""
+        G = self.direction([[fv.get(k) for k in self.inputs_for(regime)] for fv in feats],
+                           regime)
+        leak = self.leak_effect(feats, regime)
+        if leak is not None:
+            G[:, self.config.names.index("r_eta")] = leak
+        return G
+
+    def leak_effect(self, feats: Sequence[FeatureVector], regime: str) -> np.ndarray | None:
+        """The eta_V column of g from the exhaust side's leak flow (:attr:`eta_leak`) for
+        ``feats`` in ``regime``; None where the maps give it (another regime, no
+        coefficient). KeyError: a feature missing."""
+        if self.eta_leak is None or regime != self.models.regime or not len(feats):
+            return None
+        d, eta = self._closed_side(feats)
+        return np.asarray(self.eta_leak * self._flow.closed_valve_leak(d, eta))
 
     def _look_alike_status(self, rv: ResidualVector, why: str) -> ResidualVector:
         return ResidualVector(**{**rv.__dict__, "valid": False, "norm": float("nan"),
@@ -754,11 +793,10 @@ class FaultHypothesisResidualModel(_Batchable):
         self._g = {}
         for regime, group in by_regime.items():
             try:
-                X = [[fv.get(k) for k in self.inputs_for(regime)] for fv in group]
+                G = self.effects(group, regime)
             except KeyError:
                 continue
-            self._g.update({(fv.index, fv.t_end): g
-                            for fv, g in zip(group, self.direction(X, regime))})
+            self._g.update({(fv.index, fv.t_end): g for fv, g in zip(group, G)})
         # the look-alike check of the base regime's segments in one solve of the exhaust side
         base = by_regime.get(self.models.regime, [])
         self._why = dict(zip(((fv.index, fv.t_end) for fv in base),
@@ -787,7 +825,7 @@ class FaultHypothesisResidualModel(_Batchable):
             return rv
         if not self.covers(rv.regime):
             return self._elsewhere(rv)
-        if self._flow is not None:
+        if self._look_alike and self._flow is not None:
             why = self._why.pop((fv.index, fv.t_end), None)
             if why is None:
                 why = self.look_alike_here([fv], [rv.regime])[0]
@@ -797,8 +835,7 @@ class FaultHypothesisResidualModel(_Batchable):
         try:
             g = self._g.pop((fv.index, fv.t_end), None)
             if g is None:
-                g = self.direction([[fv.get(k) for k in self.inputs_for(rv.regime)]],
-                                   rv.regime)[0]
+                g = self.effects([fv], rv.regime)[0]
         except KeyError as exc:
             return ResidualVector(**{**rv.__dict__, "valid": False,
                                      "status": f"feature missing: {exc}"})
@@ -829,7 +866,7 @@ class FaultHypothesisResidualModel(_Batchable):
         base = stream_residuals(self.models, feats, config=self.config, model_id=self.model_id)
         out = [ResidualVector(**{**rv.__dict__, "norm": float("nan")}) if self.covers(rv.regime)
                or not rv.valid else self._elsewhere(rv) for rv in base]
-        if self._flow is not None:
+        if self._look_alike and self._flow is not None:
             whys = self.look_alike_here(feats, [rv.regime if rv.valid else "" for rv in out])
             out = [self._look_alike_status(rv, w) if w else rv for rv, w in zip(out, whys)]
         idx = [i for i, rv in enumerate(out) if rv.valid]
@@ -839,14 +876,12 @@ class FaultHypothesisResidualModel(_Batchable):
         for regime in {out[i].regime for i in idx}:
             rows = [r for r, i in enumerate(idx) if out[i].regime == regime]
             try:
-                X = np.array([[feats[idx[r]].get(k) for k in self.inputs_for(regime)]
-                              for r in rows])
+                G[rows] = self.effects([feats[idx[r]] for r in rows], regime)
             except KeyError as exc:
                 for i in idx:
                     out[i] = ResidualVector(**{**base[i].__dict__, "valid": False,
                                                "status": f"feature missing: {exc}"})
                 return out
-            G[rows] = self.direction(X, regime)
         for row, i in enumerate(idx):
             if not np.all(np.isfinite(G[row])):
                 out[i] = ResidualVector(**{**base[i].__dict__, "valid": False,
@@ -870,7 +905,7 @@ class FaultHypothesisResidualModel(_Batchable):
         (d / "hypothesis.json").write_text(json.dumps(
             {"fault": self.fault, "directions": sorted(self.directions),
              "window": self.window, "penalty": self.penalty, "min_effect": self.min_effect,
-             "regimes": base_regimes,
+             "regimes": base_regimes, "eta_leak": self.eta_leak,
              "regime_directions": {r: sorted(m) for r, m in self.regime_directions.items()}}))
         return d
 
@@ -939,10 +974,60 @@ def identify_fault_hypothesis(models: ReferenceModelSet, config: SymptomConfig,
     further = identify_regime_directions(models, config, regime_features, size=size,
                                          t_from=t_from, max_models=max_models) \
         if regime_features is not None else {}
+    eta_leak = None
+    if fault.split(":")[0] in VALVE_LEAK_FAULTS and "r_eta" in residual_names:
+        base = [i for i in keep if rvs[i].regime == models.regime]
+        eta_leak = fit_leak_effect(models, config, [feats[i] for i in base],
+                                   [rvs[i] for i in base], size=size)
     return FaultHypothesisResidualModel(models=models, config=config, fault=fault,
                                         directions=directions, model_id=model_id or fault,
                                         window=window, regimes=regimes,
-                                        regime_directions=further)
+                                        regime_directions=further, eta_leak=eta_leak)
+
+
+def exhaust_side(models: ReferenceModelSet) -> Any:
+    """The exhaust side's model of the set (the flaps-open EGR-open regime's EGR flow model,
+    no ports' loss), None without one."""
+    flows = [getattr(ms.models.get("eta_v"), "flow", None) for ms in models.regimes]
+    flows = [f for f in flows if f is not None and f.port == (0.0, 0.0)]
+    return flows[0] if flows else None
+
+
+def _exhaust_keys(models: ReferenceModelSet) -> tuple[str, ...]:
+    """The features the exhaust-side model reads: its inputs and those the lags are undone
+    with."""
+    return tuple(k for k in model_features(models) if k in FLOW_INPUTS
+                 or k in ("T2_rate", "vgt_rate", "eta_v"))
+
+
+def fit_leak_effect(models: ReferenceModelSet, config: SymptomConfig,
+                    feats: Sequence[FeatureVector], rvs: Sequence[ResidualVector], *,
+                    size: float) -> float | None:
+    """The coefficient c of a valve leak's eta_V effect per unit size, ``g_eta = c q`` with
+    ``q`` the exhaust-side model's leak flow across the closed valve
+    (:meth:`EgrFlowModel.closed_valve_leak`), by least squares on faulty segments of the base
+    regime (``rvs`` their nominal residuals); None where there is no exhaust-side model, too
+    few segments, or it explains less than :data:`MIN_LEAK_FIT_R2` of their effect."""
+    flow = exhaust_side(models)
+    if flow is None or len(feats) < MIN_EFFECT_SEGMENTS:
+        return None
+    try:
+        d = models.compensate({k: np.array([fv.get(k) for fv in feats], dtype=float)
+                               for k in _exhaust_keys(models)})
+    except KeyError:
+        return None
+    q = flow.closed_valve_leak(d, models.models["eta_v"].predict(
+        np.column_stack([d["n"], d["rho2"]])))
+    j = config.names.index("r_eta")
+    z = np.array([_z(rv.values, config, rv.regime)[j] for rv in rvs]) / size
+    ok = np.isfinite(q) & np.isfinite(z)
+    q, z = q[ok], z[ok]
+    if q.size < MIN_EFFECT_SEGMENTS or not float(q @ q) > 0:
+        return None
+    c = float(q @ z) / float(q @ q)
+    tot = float(np.sum((z - z.mean()) ** 2))
+    r2 = 1.0 - float(np.sum((z - c * q) ** 2)) / tot if tot > 0 else 0.0
+    return c if r2 >= MIN_LEAK_FIT_R2 else None
 
 
 # Inputs of a further regime's effect maps: the operating point, the load and the EGR valve's
@@ -1032,7 +1117,8 @@ def _register() -> None:
             window=int(spec.get("window", meta.get("window", DEFAULT_WINDOW))),
             penalty=float(spec.get("penalty", meta.get("penalty", DEFAULT_PENALTY))),
             min_effect=float(spec.get("min_effect", meta.get("min_effect", 1.0))),
-            regimes=meta.get("regimes"), regime_directions=meta.get("regime_maps"))
+            regimes=meta.get("regimes"), regime_directions=meta.get("regime_maps"),
+            eta_leak=meta.get("eta_leak"))
 
 
 _register()

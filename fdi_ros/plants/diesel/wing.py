@@ -34,9 +34,10 @@ HYPOTHESIS_SIZES = {"crankcase_vent_open": 10.0, "leak_ic_engine": 5.0,
 # spec names ``size:``; sizes are clipped to the plant's fault limits.
 SIZE_FACTORS = {"small": 0.5, "medium": 1.0, "large": 2.0}
 HYPOTHESIS_WINDOW = 40  # segments over which a hypothesis estimates its fault size (0.6 s)
-# What a hypothesis holds: 2 = effect maps of the EGR-open regimes beside the base regime's
-# (hypotheses of an older layout are rebuilt)
-HYPOTHESIS_LAYOUT = 2
+# What a hypothesis holds: 2 = effect maps of the EGR-open regimes beside the base regime's,
+# 3 = and a valve leak's eta_V effect from the exhaust side (hypotheses of an older layout are
+# rebuilt)
+HYPOTHESIS_LAYOUT = 3
 BUILD_INFO = "build_info.json"
 REFERENCE_FILES = ("reference_models.json", "thresholds.json")
 

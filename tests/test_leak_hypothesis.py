@@ -95,3 +95,14 @@ def test_bank_leaky_valve_hypothesis_uses_the_exhaust_side(diesel_bank):
     others = [k for k in range(len(hyp.config.names)) if k != j]
     np.testing.assert_allclose(G[:, others], hyp.direction(
         [[fv.get(k) for k in hyp.inputs] for fv in feats])[:, others])
+    # a recording without a feature the exhaust side reads (older bags lack vgt_rate): the
+    # map's effect, not an error
+    strip = [FeatureVector(**{**fv.__dict__,
+                              "names": tuple(k for k in fv.names if k != "vgt_rate"),
+                              "units": tuple(u for k, u in zip(fv.names, fv.units)
+                                             if k != "vgt_rate"),
+                              "values": np.array([v for k, v in zip(fv.names, fv.values)
+                                                  if k != "vgt_rate"])}) for fv in feats]
+    assert hyp.leak_effect(strip, hyp.models.regime) is None
+    np.testing.assert_allclose(hyp.effects(strip, hyp.models.regime), hyp.direction(
+        [[fv.get(k) for k in hyp.inputs] for fv in strip]))

@@ -742,7 +742,7 @@ class FaultHypothesisResidualModel(_Batchable):
     def effects(self, feats: Sequence[FeatureVector], regime: str) -> np.ndarray:
         """g of ``feats`` (all in ``regime``), (N, m): the regime's effect maps, and in the
         base regime with :attr:`eta_leak` the eta_V column from the exhaust side's leak flow
-        (KeyError: a feature missing)."""
+        (KeyError: a feature the maps read missing)."""
         G = self.direction([[fv.get(k) for k in self.inputs_for(regime)] for fv in feats],
                            regime)
         leak = self.leak_effect(feats, regime)
@@ -752,11 +752,14 @@ class FaultHypothesisResidualModel(_Batchable):
 
     def leak_effect(self, feats: Sequence[FeatureVector], regime: str) -> np.ndarray | None:
         """The eta_V column of g from the exhaust side's leak flow (:attr:`eta_leak`) for
-        ``feats`` in ``regime``; None where the maps give it (another regime, no
-        coefficient). KeyError: a feature missing."""
+        ``feats`` in ``regime``; None where the maps give it (another regime, no coefficient,
+        or features the exhaust side reads missing: a recording without them)."""
         if self.eta_leak is None or regime != self.models.regime or not len(feats):
             return None
-        d, eta = self._closed_side(feats)
+        try:
+            d, eta = self._closed_side(feats)
+        except KeyError:
+            return None
         return np.asarray(self.eta_leak * self._flow.closed_valve_leak(d, eta))
 
     def _look_alike_status(self, rv: ResidualVector, why: str) -> ResidualVector:

@@ -10,6 +10,7 @@ flaps open (part load), EGR closed (full load, high speed) and overrun (no torqu
 from __future__ import annotations
 
 import dataclasses
+import sys
 from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
@@ -241,6 +242,30 @@ def fault_case_report(steps: Sequence, features: Sequence, fault: str, onset: fl
     return out
 
 
+def _fault_case(item: tuple[str, str, int, int, float, float]) -> dict[str, Any]:
+    """Case ``i`` of the realistic drive (a fault opened at its seeded time) in a window
+    around the onset, diagnosed with and without the fault (the twin: same window and seed)."""
+    from fdi_ros.core.diagnoser import diagnose_offline
+    from fdi_ros.core.graphconfig import load_graph_config
+    from fdi_ros.plants.diesel.drive import window
+    from fdi_ros.plants.diesel.identify import simulate_features
+    from fdi_ros.plants.diesel.scenario import load_cases
+
+    path, config, i, seed, before_s, after_s = item
+    cfg = load_graph_config(config)
+    sc = load_cases(path)[i]
+    ev = sc.faults[0]
+    t0 = max(0.0, ev.t - before_s)
+    win = window(sc, t0, ev.t + after_s)
+    fw, _ = simulate_features(win, seed=seed + i)
+    steps = diagnose_offline(cfg, fw)
+    twin, _ = simulate_features(dataclasses.replace(win, faults=()), seed=seed + i)
+    effect = fault_effect([s.symptoms for _, _, s in steps],
+                          [s.symptoms for _, _, s in diagnose_offline(cfg, twin)])
+    return {**fault_case_report(steps, fw, ev.fault, ev.t - t0, size=ev.size, effect=effect),
+            "onset_drive_s": ev.t}
+
+
 def realistic_drive(config, *, seed: int = 202, progress: bool = False,
                     figures: str | Path | None = None, before_s: float = 20.0,
                     after_s: float = 600.0) -> dict[str, Any]:
@@ -250,8 +275,8 @@ def realistic_drive(config, *, seed: int = 202, progress: bool = False,
     without the fault (:func:`fault_effect`)."""
     from fdi_ros.core.diagnoser import diagnose_offline
     from fdi_ros.core.graphconfig import load_graph_config
-    from fdi_ros.plants.diesel.drive import window
-    from fdi_ros.plants.diesel.identify import load_features, simulate_features
+    from fdi_ros.core.parallel import map_processes
+    from fdi_ros.plants.diesel.identify import load_features
     from fdi_ros.plants.diesel.scenario import load_cases
 
     cfg = load_graph_config(config)
@@ -267,19 +292,13 @@ def realistic_drive(config, *, seed: int = 202, progress: bool = False,
         out["figure"] = str(coverage_figure(feats, states, Path(figures) / "coverage_map.png",
                                             title="realistic drive: share of segments with a "
                                                   f"valid diagnosis ({out['coverage']:.1%})"))
-    runs = []
-    for i, sc in enumerate(cases[1:]):
-        ev = sc.faults[0]
-        t0 = max(0.0, ev.t - before_s)
-        win = window(sc, t0, ev.t + after_s)
-        fw, _ = simulate_features(win, seed=seed + 1 + i, progress=progress)
-        steps = diagnose_offline(cfg, fw)
-        # the same window without the fault, same seed: what the fault itself changes
-        twin, _ = simulate_features(dataclasses.replace(win, faults=()), seed=seed + 1 + i,
-                                    progress=progress)
-        effect = fault_effect([s.symptoms for _, _, s in steps],
-                              [s.symptoms for _, _, s in diagnose_offline(cfg, twin)])
-        runs.append({**fault_case_report(steps, fw, ev.fault, ev.t - t0, size=ev.size,
-                                         effect=effect), "onset_drive_s": ev.t})
-    out["faults"] = runs
+    # the fault windows and their twins on the cores there are (each a pure function of its
+    # case: the same results as one after the other)
+    def told(done: int, total: int) -> None:
+        print(f"[realistic drive] fault windows and their twins: {done}/{total}",
+              file=sys.stderr, flush=True)
+
+    out["faults"] = map_processes(_fault_case, [(str(path), str(cfg.path), i, seed, before_s,
+                                                 after_s) for i in range(1, len(cases))],
+                                  progress=told if progress else None)
     return out

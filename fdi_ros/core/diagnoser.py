@@ -146,7 +146,7 @@ class Diagnoser:
         before = self.models_online
         candidates: tuple[str, ...] = ()
         feed: dict[str, ResidualVector] = dict(residuals)
-        not_isolable = ambiguous = False
+        not_isolable = ambiguous = unexplained = False
         if self.symptom_gen is not None:
             ref = residuals.get(self.reference_id)
             if symptoms is None and ref is not None:
@@ -193,11 +193,21 @@ class Diagnoser:
                                            for k, v in feed.items())
                     ranked = sorted(v.norm for k, v in feed.items()
                                     if k != self.reference_id and v.valid)
+                    ref_v = feed.get(self.reference_id)
                     if len(ranked) >= 2 and not ranked[0] < self.ambiguity * ranked[1]:
                         # two hypotheses explain the residuals about as well: no isolation
                         # by a small difference (detected, ambiguous), the hold time restarts
                         feed = {k: v for k, v in feed.items() if k == self.reference_id}
                         ambiguous = True
+                    elif ranked and ref_v is not None and ref_v.valid \
+                            and math.isfinite(ref_v.norm) \
+                            and not ranked[0] < self.ambiguity * ref_v.norm:
+                        # the best candidate explains the residuals hardly better than the
+                        # nominal model: it does not explain them, it is the least bad (a
+                        # fault outside the candidates, e.g. a table row measured at another
+                        # operating point): detected, not isolated
+                        feed = {k: v for k, v in feed.items() if k == self.reference_id}
+                        unexplained = True
         fm = feed.get(self.supervisor.fault_model)
         if fm is None or not fm.valid:
             # The model believed to match the plant (nominal at start) is the baseline of the
@@ -226,6 +236,8 @@ class Diagnoser:
         extra = dict(d.extra)
         if ambiguous and state == "detected":
             extra["ambiguous"] = True
+        if unexplained and state == "detected":
+            extra["unexplained"] = True
         if not_isolable and state == "detected":
             # "detected, not isolable with the models on line": name the table's candidates,
             # those whose models are away (off line, dead, stale) included

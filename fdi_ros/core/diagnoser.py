@@ -101,7 +101,7 @@ class Diagnoser:
             raise ValueError(f"{cfg.path}: symptoms.hypothesis_regimes must be a list of "
                              "regime names")
         self.hypothesis_regimes = frozenset(regimes)
-        self._candidates: dict[tuple[int, ...], tuple[str, ...]] = {}
+        self._candidates: dict[tuple[int, ...], tuple[tuple[str, ...], tuple[str, ...]]] = {}
         self._partial: dict[tuple[Any, ...], tuple[str, ...]] = {}
 
     @property
@@ -139,12 +139,25 @@ class Diagnoser:
                 {fault_type(f) for f in match}) == 1 else ()
         return hit
 
+    def _backs(self, feed: Mapping[str, ResidualVector], best: float,
+               backed: tuple[str, ...]) -> bool:
+        """Whether the best hypothesis of ``feed`` (norm ``best``) is of a fault the table's
+        signatures name (``backed``)."""
+        if not backed:
+            return False
+        faults = {m.id: m.fault_types for m in self.supervisor.bank}
+        return any(v.norm == best and faults.get(k, frozenset()) & set(backed)
+                   for k, v in feed.items() if k != self.reference_id and v.valid)
+
     def update(self, index: int, t: float, residuals: Mapping[str, ResidualVector], *,
                symptoms: SymptomState | None = None) -> Step:
         """One step. ``symptoms``: the result of :meth:`symptoms_of` for this index when the
         caller computed it already (otherwise it is computed here from ``residuals``)."""
         before = self.models_online
         candidates: tuple[str, ...] = ()
+        # the candidates the table's signatures name (the rest compete on their hypotheses'
+        # evidence alone: rows merely covering the symptoms, or a hypothesis regime)
+        backed: tuple[str, ...] = ()
         feed: dict[str, ResidualVector] = dict(residuals)
         not_isolable = ambiguous = unexplained = False
         if self.symptom_gen is not None:
@@ -162,7 +175,7 @@ class Diagnoser:
                 candidates = tuple(self.table)
             elif symptoms is not None and active and self.table is not None and \
                     not self.symptom_gen.config.judges_all(symptoms.regime):
-                candidates = self._partial_candidates(symptoms)
+                candidates = backed = self._partial_candidates(symptoms)
             elif symptoms is not None and active and self.table is not None:
                 cols = self.table.columns
                 observed = symptoms.in_order(cols) if cols else tuple(symptoms.levels)
@@ -170,10 +183,12 @@ class Diagnoser:
                 # cannot explain the residuals, however small its model's residual.
                 cached = self._candidates.get(observed)
                 if cached is None:   # a pure function of the pattern: once per pattern
-                    cached = self._candidates[observed] = tuple(dict.fromkeys(isolate(
-                        observed, self.table, max_mismatch=self.max_mismatch,
-                        opposite="exclude", keep="all") + covering(observed, self.table)))
-                candidates = cached
+                    matched = tuple(isolate(observed, self.table,
+                                            max_mismatch=self.max_mismatch,
+                                            opposite="exclude", keep="all"))
+                    cached = self._candidates[observed] = (tuple(dict.fromkeys(
+                        (*matched, *covering(observed, self.table)))), matched)
+                candidates, backed = cached
             if not self.supervisor.isolated:
                 if not active:
                     # No symptom: the reference model explains the data by definition; the
@@ -201,11 +216,13 @@ class Diagnoser:
                         ambiguous = True
                     elif ranked and ref_v is not None and ref_v.valid \
                             and math.isfinite(ref_v.norm) \
-                            and not ranked[0] < self.ambiguity * ref_v.norm:
-                        # the best candidate explains the residuals hardly better than the
-                        # nominal model: it does not explain them, it is the least bad (a
-                        # fault outside the candidates, e.g. a table row measured at another
-                        # operating point): detected, not isolated
+                            and not ranked[0] < self.ambiguity * ref_v.norm \
+                            and not self._backs(feed, ranked[0], backed):
+                        # a candidate the table does not name, explaining the residuals
+                        # hardly better than the nominal model: the least bad, not an
+                        # explanation (the true fault may be one the table excludes here,
+                        # its row measured at another operating point): detected, not
+                        # isolated
                         feed = {k: v for k, v in feed.items() if k == self.reference_id}
                         unexplained = True
         fm = feed.get(self.supervisor.fault_model)

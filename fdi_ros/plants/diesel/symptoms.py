@@ -633,7 +633,8 @@ BACKFLOW_MARGIN_PA = 5000.0
 # learnt in steady state, said about nothing; the vent's hypothesis explained the "+" and was
 # isolated. There the eta_V effect is the exhaust-side model's leak flow
 # (EgrFlowModel.closed_valve_leak) times a coefficient fitted on the identification's
-# segments, where it explains their effect this well (R^2; the map stays otherwise).
+# segments, where it explains their effect this well (R^2; the map stays otherwise). A valve
+# stuck open while the ECU closes it is such a hole too, a larger one.
 VALVE_LEAK_FAULTS = ("egr_leaky", "egr_stuck_open")
 MIN_LEAK_FIT_R2 = 0.8
 
@@ -658,7 +659,9 @@ class FaultHypothesisResidualModel(_Batchable):
     not the effect with it closed). ``regime_directions``: effect maps of further regimes
     (regime -> residual -> map, over their own inputs), identified on faulty data of that
     regime: a regime judged on some residuals only has maps of those (the others' effect is
-    not estimated there, their z is 0).
+    not estimated there, their z is 0). ``eta_leak``: a leaking EGR valve's coefficient
+    (:data:`VALVE_LEAK_FAULTS`, :func:`fit_leak_effect`): in the base regime the eta_V column
+    of g is the exhaust side's leak flow across the closed valve times it.
     """
 
     def __init__(self, *, models: ReferenceModelSet, config: SymptomConfig, fault: str,

@@ -102,6 +102,7 @@ class Diagnoser:
                              "regime names")
         self.hypothesis_regimes = frozenset(regimes)
         self._candidates: dict[tuple[int, ...], tuple[tuple[str, ...], tuple[str, ...]]] = {}
+        self._fault_types = {m.id: m.fault_types for m in self.supervisor.bank}
         self._partial: dict[tuple[Any, ...], tuple[str, ...]] = {}
 
     @property
@@ -138,16 +139,6 @@ class Diagnoser:
             hit = self._partial[key] = tuple(match) if len(
                 {fault_type(f) for f in match}) == 1 else ()
         return hit
-
-    def _backs(self, feed: Mapping[str, ResidualVector], best: float,
-               backed: tuple[str, ...]) -> bool:
-        """Whether the best hypothesis of ``feed`` (norm ``best``) is of a fault the table's
-        signatures name (``backed``)."""
-        if not backed:
-            return False
-        faults = {m.id: m.fault_types for m in self.supervisor.bank}
-        return any(v.norm == best and faults.get(k, frozenset()) & set(backed)
-                   for k, v in feed.items() if k != self.reference_id and v.valid)
 
     def update(self, index: int, t: float, residuals: Mapping[str, ResidualVector], *,
                symptoms: SymptomState | None = None) -> Step:
@@ -206,8 +197,9 @@ class Diagnoser:
                         k == self.reference_id or not v.norm > self.explain_norm)}
                     not_isolable = not any(k != self.reference_id and v.valid
                                            for k, v in feed.items())
-                    ranked = sorted(v.norm for k, v in feed.items()
-                                    if k != self.reference_id and v.valid)
+                    by_norm = sorted((v.norm, k) for k, v in feed.items()
+                                     if k != self.reference_id and v.valid)
+                    ranked = [norm for norm, _ in by_norm]
                     ref_v = feed.get(self.reference_id)
                     if len(ranked) >= 2 and not ranked[0] < self.ambiguity * ranked[1]:
                         # two hypotheses explain the residuals about as well: no isolation
@@ -217,7 +209,8 @@ class Diagnoser:
                     elif ranked and ref_v is not None and ref_v.valid \
                             and math.isfinite(ref_v.norm) \
                             and not ranked[0] < self.ambiguity * ref_v.norm \
-                            and not self._backs(feed, ranked[0], backed):
+                            and not any(self._fault_types[k] & set(backed)
+                                        for norm, k in by_norm if norm == ranked[0]):
                         # a candidate the table does not name, explaining the residuals
                         # hardly better than the nominal model: the least bad, not an
                         # explanation (the true fault may be one the table excludes here,

@@ -736,11 +736,7 @@ class FaultHypothesisResidualModel(_Batchable):
 
     def _closed_side(self, feats: Sequence[FeatureVector]
                      ) -> tuple[dict[str, np.ndarray], np.ndarray]:
-        """The exhaust-side model's inputs of ``feats`` (lags undone) and the EGR-closed
-        map's eta_V there (KeyError: a feature missing)."""
-        raw = {k: np.array([fv.get(k) for fv in feats], dtype=float) for k in self._look_keys}
-        d = self.models.compensate(raw)
-        return d, self.models.models["eta_v"].predict(np.column_stack([d["n"], d["rho2"]]))
+        return closed_side(self.models, feats, self._look_keys)
 
     def effects(self, feats: Sequence[FeatureVector], regime: str) -> np.ndarray:
         """g of ``feats`` (all in ``regime``), (N, m): the regime's effect maps, and in the
@@ -760,10 +756,9 @@ class FaultHypothesisResidualModel(_Batchable):
         if self.eta_leak is None or regime != self.models.regime or not len(feats):
             return None
         try:
-            d, eta = self._closed_side(feats)
+            return self.eta_leak * self._flow.closed_valve_leak(*self._closed_side(feats))
         except KeyError:
             return None
-        return np.asarray(self.eta_leak * self._flow.closed_valve_leak(d, eta))
 
     def _look_alike_status(self, rv: ResidualVector, why: str) -> ResidualVector:
         return ResidualVector(**{**rv.__dict__, "valid": False, "norm": float("nan"),
@@ -1006,6 +1001,18 @@ def _exhaust_keys(models: ReferenceModelSet) -> tuple[str, ...]:
                  or k in ("T2_rate", "vgt_rate", "eta_v"))
 
 
+def closed_side(models: ReferenceModelSet, feats: Sequence[FeatureVector],
+                keys: Sequence[str] | None = None
+                ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The exhaust-side model's inputs of ``feats`` (``keys``, default
+    :func:`_exhaust_keys`; the lags undone) and the EGR-closed map's eta_V there (KeyError: a
+    feature missing)."""
+    keys = _exhaust_keys(models) if keys is None else keys
+    d = models.compensate({k: np.array([fv.get(k) for fv in feats], dtype=float)
+                           for k in keys})
+    return d, models.models["eta_v"].predict(np.column_stack([d["n"], d["rho2"]]))
+
+
 def fit_leak_effect(models: ReferenceModelSet, config: SymptomConfig,
                     feats: Sequence[FeatureVector], rvs: Sequence[ResidualVector], *,
                     size: float) -> float | None:
@@ -1018,12 +1025,9 @@ def fit_leak_effect(models: ReferenceModelSet, config: SymptomConfig,
     if flow is None or len(feats) < MIN_EFFECT_SEGMENTS:
         return None
     try:
-        d = models.compensate({k: np.array([fv.get(k) for fv in feats], dtype=float)
-                               for k in _exhaust_keys(models)})
+        q = flow.closed_valve_leak(*closed_side(models, feats))
     except KeyError:
         return None
-    q = flow.closed_valve_leak(d, models.models["eta_v"].predict(
-        np.column_stack([d["n"], d["rho2"]])))
     j = config.names.index("r_eta")
     z = np.array([_z(rv.values, config, rv.regime)[j] for rv in rvs]) / size
     ok = np.isfinite(q) & np.isfinite(z)
